@@ -1,0 +1,126 @@
+"""The ``codesign`` command line.
+
+Core commands are ``run``, ``show`` and ``plugins``; plugins add their own
+through the ``codesign_cli`` hook. Plugins are loaded before the command line
+is parsed (their commands must exist by then), so ``--disable-plugin`` is read
+from the arguments ahead of time. Heavy modules are imported inside commands
+only, to keep ``codesign --help`` fast.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from codesign.errors import CodesignError
+from codesign.plugins import DISABLE_ENV, PluginManager, get_registry, load_plugins
+
+_stderr = Console(stderr=True)
+
+
+def build_app(plugin_manager: PluginManager) -> typer.Typer:
+    """The typer app with the core commands and every plugin's commands."""
+    app = typer.Typer(
+        name="codesign",
+        help="Co-design soft robots: run, inspect and extend recipes.",
+        no_args_is_help=True,
+        pretty_exceptions_enable=False,
+        add_completion=False,
+    )
+
+    @app.callback()
+    def _global_options(
+        disable_plugin: Optional[list[str]] = typer.Option(  # noqa: ARG001 - applied before parsing
+            None,
+            "--disable-plugin",
+            metavar="NAME",
+            help=f"Do not load the plugin NAME (repeatable; also ${DISABLE_ENV}=a,b).",
+        ),
+    ) -> None:
+        """Co-design soft robots: run, inspect and extend recipes."""
+
+    @app.command()
+    def run(
+        recipe: Optional[str] = typer.Argument(None, help="Recipe file, or a name in recipes/."),
+        overrides: Optional[list[str]] = typer.Argument(None, help="key=value overrides, e.g. seed=3."),
+        run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="Where to write the run."),
+        resume: Optional[Path] = typer.Option(None, "--resume", help="Continue the run in this directory."),
+        no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+    ) -> None:
+        """Run a recipe (or resume a run) and print its run directory."""
+        from codesign import runner
+
+        if resume is not None:
+            if recipe is not None or overrides or run_dir is not None:
+                raise CodesignError("--resume takes no recipe, overrides or --run-dir: the run keeps its own")
+            directory = runner.resume(resume, progress=not no_progress)
+        else:
+            if recipe is None:
+                raise CodesignError("missing RECIPE (or --resume RUN_DIR)")
+            from codesign.recipe import load_recipe
+
+            resolved = load_recipe(recipe, overrides or [])
+            directory = runner.run(resolved, run_dir=run_dir, progress=not no_progress)
+        typer.echo(str(directory))
+
+    @app.command()
+    def show(
+        recipe: str = typer.Argument(..., help="Recipe file, or a name in recipes/."),
+        overrides: Optional[list[str]] = typer.Argument(None, help="key=value overrides, e.g. seed=3."),
+    ) -> None:
+        """Print the composed, validated recipe with every default filled in."""
+        from codesign.recipe import load_recipe
+
+        typer.echo(load_recipe(recipe, overrides or []).to_yaml(), nl=False)
+
+    @app.command()
+    def plugins(as_json: bool = typer.Option(False, "--json", help="Print a JSON list instead of a table.")) -> None:
+        """List every registered component with its plugin and distribution."""
+        rows = [
+            {
+                "kind": e.kind,
+                "name": e.name,
+                "plugin": e.plugin,
+                "distribution": e.distribution,
+                "description": e.description,
+            }
+            for e in get_registry().entries()
+        ]
+        if as_json:
+            typer.echo(json.dumps(rows, indent=2))
+            return
+        table = Table("kind", "name", "plugin", "distribution", "description")
+        for row in rows:
+            table.add_row(*(str(row[k] or "-") for k in ("kind", "name", "plugin", "distribution", "description")))
+        Console().print(table)
+
+    plugin_manager.hook.codesign_cli(app=app)
+    return app
+
+
+def _disabled_plugins(argv: list[str]) -> list[str]:
+    """Values of ``--disable-plugin NAME`` / ``--disable-plugin=NAME`` in ``argv``."""
+    names = []
+    for i, arg in enumerate(argv):
+        if arg == "--disable-plugin" and i + 1 < len(argv):
+            names.append(argv[i + 1])
+        elif arg.startswith("--disable-plugin="):
+            names.append(arg.split("=", 1)[1])
+    return names
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point: user errors print one red line and exit 1, bugs show a traceback."""
+    args = sys.argv[1:] if argv is None else argv
+    try:
+        app = build_app(load_plugins(_disabled_plugins(args)))
+        app(args=args, prog_name="codesign")
+    except CodesignError as exc:
+        _stderr.print(f"error: {exc}", style="red", markup=False, highlight=False, soft_wrap=True)
+        raise SystemExit(1) from None

@@ -1,0 +1,21 @@
+"""Exception types for mistakes a user can fix (bad recipe, unknown name).
+
+The CLI prints these as one clear message without a traceback; any other
+exception is treated as a bug and shown in full.
+"""
+
+
+class CodesignError(Exception):
+    """Base of all user-facing errors."""
+
+
+class RegistryError(CodesignError):
+    """An unknown kind or name was requested, or a name was registered twice."""
+
+
+class RecipeError(CodesignError):
+    """A recipe could not be loaded, composed or validated."""
+
+
+class PluginError(CodesignError):
+    """A plugin could not be loaded."""

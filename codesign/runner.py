@@ -1,0 +1,264 @@
+"""Builds a recipe's parts, runs the optimizer loop and keeps the run directory.
+
+A run directory holds:
+
+- ``config.yaml``: the resolved recipe (defaults filled in, ``run_dir`` set);
+- ``metrics.jsonl``: one JSON object per iteration (with ``iteration`` and ``wall_time``);
+- ``summary.json``: status, final and best metrics, wall time, versions, seed;
+- ``checkpoint.pkl``: optimizer state and RNG state after the last completed
+  iteration, from which :func:`resume` continues.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pickle
+import platform
+import random
+import sys
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import datetime
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import OmegaConf
+from tqdm import tqdm
+
+from codesign.errors import CodesignError
+from codesign.interfaces import Controller, Environment, Optimizer, Representation
+from codesign.plugins import get_plugin_manager, get_registry
+from codesign.recipe import ResolvedRecipe, resolve_recipe
+from codesign.tracking import JsonlTracker, MultiTracker, Tracker, WandbTracker
+
+CONFIG_FILE = "config.yaml"
+METRICS_FILE = "metrics.jsonl"
+SUMMARY_FILE = "summary.json"
+CHECKPOINT_FILE = "checkpoint.pkl"
+
+_BASES = {
+    "environment": Environment,
+    "representation": Representation,
+    "controller": Controller,
+    "optimizer": Optimizer,
+}
+_RUNNER_KEYS = ("iteration", "wall_time")
+
+
+@dataclass
+class Parts:
+    environment: Environment
+    representation: Representation
+    controller: Controller
+    optimizer: Optimizer
+
+
+def build_parts(recipe: ResolvedRecipe) -> Parts:
+    """Construct each part as ``Factory(config)`` from its registry entry."""
+    registry = get_registry()
+    built = {}
+    for kind, base in _BASES.items():
+        section = recipe.sections[kind]
+        part = registry.get(kind, section.name).load_factory()(section.config)
+        if not isinstance(part, base):
+            raise CodesignError(
+                f"{kind} '{section.name}' built a {type(part).__name__}, which is not a {base.__name__}"
+            )
+        built[kind] = part
+    return Parts(**built)
+
+
+def seed_everything(seed: int) -> np.random.Generator:
+    """Seed Python, numpy, torch (only if already imported) and plugins; return the run's generator."""
+    random.seed(seed)
+    np.random.seed(seed)
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.manual_seed(seed)
+    get_plugin_manager().hook.codesign_seed(seed=seed)
+    return np.random.default_rng(seed)
+
+
+def run(recipe: ResolvedRecipe, *, run_dir: str | Path | None = None, progress: bool = True) -> Path:
+    """Run a recipe in a new run directory and return that directory."""
+    if run_dir is None and recipe.settings.run_dir is None:
+        directory = _fresh_run_dir(recipe.name)
+    else:
+        directory = Path(run_dir if run_dir is not None else recipe.settings.run_dir)
+        if directory.exists() and any(directory.iterdir()):
+            raise CodesignError(
+                f"run directory {directory} is not empty; continue it with --resume {directory} "
+                f"or choose another --run-dir"
+            )
+    directory.mkdir(parents=True, exist_ok=True)
+    data = {**recipe.data, "run_dir": str(directory)}
+    (directory / CONFIG_FILE).write_text(OmegaConf.to_yaml(OmegaConf.create(data)), encoding="utf-8")
+    return _execute(recipe, data, directory, checkpoint=None, progress=progress)
+
+
+def resume(run_dir: str | Path, *, progress: bool = True) -> Path:
+    """Continue a run from its last completed iteration, appending to its metrics."""
+    directory = Path(run_dir)
+    config_path = directory / CONFIG_FILE
+    if not config_path.is_file():
+        raise CodesignError(f"{directory} is not a run directory (no {CONFIG_FILE})")
+    data = OmegaConf.to_container(OmegaConf.load(config_path), resolve=False)
+    assert isinstance(data, dict)
+    recipe = resolve_recipe(data)
+    checkpoint_path = directory / CHECKPOINT_FILE
+    checkpoint = None
+    if checkpoint_path.is_file():
+        with checkpoint_path.open("rb") as f:
+            checkpoint = pickle.load(f)
+    return _execute(recipe, data, directory, checkpoint=checkpoint, progress=progress)
+
+
+def _execute(
+    recipe: ResolvedRecipe, data: dict, run_dir: Path, *, checkpoint: dict | None, progress: bool
+) -> Path:
+    completed = checkpoint["completed"] if checkpoint else 0
+    previous_wall_time = checkpoint["wall_time"] if checkpoint else 0.0
+    rows = _kept_metrics(run_dir / METRICS_FILE, completed)
+    started = time.perf_counter()
+
+    def wall_time() -> float:
+        return previous_wall_time + time.perf_counter() - started
+
+    parts: Parts | None = None
+    tracker: Tracker | None = None
+    status, error = "failed", None
+    try:
+        tracker = _make_tracker(recipe, data, run_dir)
+        parts = build_parts(recipe)
+        rng = seed_everything(recipe.seed)
+        env, optimizer = parts.environment, parts.optimizer
+        parts.representation.setup(env.design_space, rng)
+        parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
+        optimizer.setup(env, parts.representation, parts.controller, rng=rng, run_dir=run_dir)
+        if checkpoint:
+            optimizer.load_state_dict(checkpoint["optimizer"])
+            rng.bit_generator.state = checkpoint["rng"]
+        with tqdm(
+            total=optimizer.iterations, initial=completed, desc=recipe.name, disable=not progress, file=sys.stderr
+        ) as bar:
+            for iteration in range(completed, optimizer.iterations):
+                row = {**optimizer.step(), "iteration": iteration, "wall_time": wall_time()}
+                tracker.log(row, step=iteration)
+                rows.append(row)
+                _save_checkpoint(
+                    run_dir / CHECKPOINT_FILE,
+                    {
+                        "completed": iteration + 1,
+                        "optimizer": optimizer.state_dict(),
+                        "rng": rng.bit_generator.state,
+                        "wall_time": wall_time(),
+                    },
+                )
+                bar.update(1)
+        status = "completed"
+    except BaseException as exc:
+        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        error = f"{type(exc).__name__}: {exc}"
+        raise
+    finally:
+        maximize = parts.optimizer.maximize if parts else {}
+        summary = _summary(recipe, rows, maximize, status, error, wall_time())
+        (run_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
+        if tracker is not None:
+            tracker.summary(summary)
+            tracker.close()
+        if parts is not None:
+            parts.environment.close()
+    return run_dir
+
+
+def _make_tracker(recipe: ResolvedRecipe, data: dict, run_dir: Path) -> Tracker:
+    trackers: list[Tracker] = [JsonlTracker(run_dir / METRICS_FILE)]
+    tracking = recipe.settings.tracking
+    if tracking.wandb:
+        trackers.append(
+            WandbTracker(
+                run_dir,
+                mode=tracking.wandb_mode,
+                project=tracking.project,
+                group=tracking.group,
+                name=recipe.name,
+                config=data,
+            )
+        )
+    return MultiTracker(trackers)
+
+
+def _summary(
+    recipe: ResolvedRecipe,
+    rows: list[dict],
+    maximize: Mapping[str, bool],
+    status: str,
+    error: str | None,
+    wall_time: float,
+) -> dict[str, Any]:
+    best: dict[str, float] = {}
+    for row in rows:
+        for key, value in row.items():
+            if key in _RUNNER_KEYS or isinstance(value, bool) or not isinstance(value, (int, float)):
+                continue
+            if not math.isfinite(value):
+                continue
+            better = max if maximize.get(key, True) else min
+            best[key] = better(best[key], value) if key in best else value
+    summary: dict[str, Any] = {
+        "status": status,
+        "recipe": recipe.name,
+        "seed": recipe.seed,
+        "iterations_completed": len(rows),
+        "final": {k: v for k, v in rows[-1].items() if k not in _RUNNER_KEYS} if rows else {},
+        "best": best,
+        "wall_time": wall_time,
+        "versions": _versions(),
+    }
+    if error is not None:
+        summary["error"] = error
+    return summary
+
+
+def _versions() -> dict[str, str]:
+    """Versions of the packages that shape results, read from metadata (nothing is imported)."""
+    versions = {"python": platform.python_version()}
+    for dist in ("codesign", "numpy", "taichi", "torch"):
+        try:
+            versions[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            pass
+    return versions
+
+
+def _kept_metrics(path: Path, completed: int) -> list[dict]:
+    """Rows of iterations covered by the checkpoint; later rows (logged, not checkpointed) are dropped."""
+    if not path.exists():
+        return []
+    rows = [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+    kept = [row for row in rows if row.get("iteration", math.inf) < completed]
+    if len(kept) != len(rows):
+        path.write_text("".join(json.dumps(row) + "\n" for row in kept), encoding="utf-8")
+    return kept
+
+
+def _save_checkpoint(path: Path, state: dict) -> None:
+    """Write atomically so a crash mid-write leaves the previous checkpoint intact."""
+    tmp = path.with_suffix(".tmp")
+    with tmp.open("wb") as f:
+        pickle.dump(state, f)
+    os.replace(tmp, path)
+
+
+def _fresh_run_dir(name: str) -> Path:
+    base = Path("runs") / f"{name}-{datetime.now():%Y%m%d-%H%M%S}"
+    candidate, n = base, 1
+    while candidate.exists():
+        candidate, n = Path(f"{base}-{n}"), n + 1
+    return candidate

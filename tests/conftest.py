@@ -1,0 +1,31 @@
+import copy
+
+import pytest
+
+from codesign import plugins
+
+#: A small recipe that runs in well under a second with the test doubles.
+TOY_RECIPE = {
+    "name": "toy",
+    "seed": 7,
+    "environment": {"name": "toy"},
+    "representation": {"name": "constant"},
+    "controller": {"name": "sine", "frequencies": [6.0, 12.0]},
+    "optimizer": {"name": "evaluate", "episodes": 3},
+}
+
+
+@pytest.fixture(autouse=True)
+def fresh_plugins(monkeypatch):
+    """Every test sees the installed plugins plus tests/toy_plugin.py, loaded afresh."""
+    monkeypatch.setenv(plugins.EXPLICIT_ENV, "toy_plugin")
+    monkeypatch.delenv(plugins.DISABLE_ENV, raising=False)
+    monkeypatch.delenv(plugins.NO_AUTOLOAD_ENV, raising=False)
+    plugins.reset()
+    yield
+    plugins.reset()
+
+
+@pytest.fixture
+def toy_recipe() -> dict:
+    return copy.deepcopy(TOY_RECIPE)

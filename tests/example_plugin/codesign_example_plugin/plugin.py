@@ -1,0 +1,12 @@
+from codesign.hookspecs import hookimpl
+
+
+@hookimpl
+def codesign_register(registry) -> None:
+    registry.add(
+        "controller",
+        "square_wave",
+        "codesign_example_plugin.square_wave:SquareWave",
+        "codesign_example_plugin.square_wave:SquareWaveConfig",
+        "Bang-bang gait: each actuator switches between +/- amplitude, phase-shifted per actuator.",
+    )

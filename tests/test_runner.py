@@ -1,0 +1,134 @@
+import json
+import pickle
+from pathlib import Path
+
+import pytest
+import yaml
+
+from codesign import CodesignError, runner
+from codesign.recipe import resolve_recipe
+
+import toy_plugin
+from toy_plugin import CountingOptimizer
+
+
+def read_metrics(run_dir) -> list[dict]:
+    return [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+def read_summary(run_dir) -> dict:
+    return json.loads((run_dir / "summary.json").read_text())
+
+
+def test_run_writes_config_metrics_summary_and_checkpoint(tmp_path, toy_recipe):
+    run_dir = runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "run", progress=False)
+
+    config = yaml.safe_load((run_dir / "config.yaml").read_text())
+    assert config["run_dir"] == str(tmp_path / "run")
+    assert config["controller"] == {"name": "sine", "frequencies": [6.0, 12.0], "phases": 4, "bound": 0.3, "init_std": 0.1}
+    assert resolve_recipe(config).data == config  # the saved config is itself a valid, complete recipe
+
+    rows = read_metrics(run_dir)
+    assert [r["iteration"] for r in rows] == [0, 1, 2]
+    assert all({"episode_return", "mean_reward", "episode_length", "wall_time"} <= r.keys() for r in rows)
+    assert rows[0]["wall_time"] <= rows[-1]["wall_time"]
+
+    summary = read_summary(run_dir)
+    assert summary["status"] == "completed"
+    assert (summary["recipe"], summary["seed"], summary["iterations_completed"]) == ("toy", 7, 3)
+    assert summary["final"]["episode_return"] == rows[-1]["episode_return"]
+    assert summary["best"]["episode_return"] == max(r["episode_return"] for r in rows)
+    assert {"python", "codesign", "numpy"} <= summary["versions"].keys()
+    assert summary["wall_time"] >= rows[-1]["wall_time"]
+
+    checkpoint = pickle.loads((run_dir / "checkpoint.pkl").read_bytes())
+    assert checkpoint["completed"] == 3
+
+
+def test_same_seed_gives_same_metrics_and_seeds_plugins(tmp_path, toy_recipe):
+    toy_plugin.seeds.clear()
+    a = runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "a", progress=False)
+    b = runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "b", progress=False)
+    strip = lambda rows: [{k: v for k, v in r.items() if k != "wall_time"} for r in rows]  # noqa: E731
+    assert strip(read_metrics(a)) == strip(read_metrics(b))
+    assert toy_plugin.seeds == [7, 7]
+
+
+def test_best_respects_the_optimizers_direction(tmp_path, toy_recipe):
+    toy_recipe["optimizer"] = {"name": "counting", "iterations": 3}
+    summary = read_summary(runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "r", progress=False))
+    assert summary["best"]["count"] == 3  # maximised by default
+    assert summary["best"]["loss"] == pytest.approx(1 / 3)  # declared lower-is-better
+
+
+def test_failure_is_recorded_then_raised_and_resume_continues_exactly(tmp_path, toy_recipe, monkeypatch):
+    toy_recipe["optimizer"] = {"name": "counting", "iterations": 4}
+    reference = runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "reference", progress=False)
+
+    monkeypatch.setattr(CountingOptimizer, "fail_at", 3)
+    with pytest.raises(RuntimeError, match="planned failure"):
+        runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "broken", progress=False)
+    broken = tmp_path / "broken"
+    summary = read_summary(broken)
+    assert summary["status"] == "failed"
+    assert summary["error"] == "RuntimeError: planned failure"
+    assert summary["iterations_completed"] == 2
+    assert len(read_metrics(broken)) == 2
+
+    monkeypatch.setattr(CountingOptimizer, "fail_at", None)
+    assert runner.resume(broken, progress=False) == broken
+    rows = read_metrics(broken)
+    assert [r["count"] for r in rows] == [1, 2, 3, 4]  # optimizer state restored
+    expected = [r["draw"] for r in read_metrics(reference)]
+    assert [r["draw"] for r in rows] == expected  # generator state restored
+    assert read_summary(broken)["status"] == "completed"
+
+
+def test_resume_drops_metrics_logged_after_the_last_checkpoint(tmp_path, toy_recipe):
+    toy_recipe["optimizer"] = {"name": "counting", "iterations": 3}
+    run_dir = runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "r", progress=False)
+    checkpoint = pickle.loads((run_dir / "checkpoint.pkl").read_bytes())
+    # Pretend the process died after logging iteration 2 but before checkpointing it.
+    checkpoint.update(completed=2, optimizer={"count": 2})
+    (run_dir / "checkpoint.pkl").write_bytes(pickle.dumps(checkpoint))
+    runner.resume(run_dir, progress=False)
+    assert [r["iteration"] for r in read_metrics(run_dir)] == [0, 1, 2]
+
+
+def test_run_refuses_a_non_empty_run_dir(tmp_path, toy_recipe):
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "something").write_text("x")
+    with pytest.raises(CodesignError, match="not empty; continue it with --resume"):
+        runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "old", progress=False)
+
+
+def test_resume_needs_a_run_directory(tmp_path):
+    with pytest.raises(CodesignError, match="not a run directory"):
+        runner.resume(tmp_path)
+
+
+def test_default_run_dir_is_under_runs_named_after_the_recipe(tmp_path, toy_recipe, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    first = runner.run(resolve_recipe(toy_recipe), progress=False)
+    second = runner.run(resolve_recipe(toy_recipe), progress=False)
+    assert first.parent == Path("runs") and (tmp_path / first / "summary.json").is_file()
+    assert first.name.startswith("toy-") and first != second  # never reuses a directory
+
+
+def test_wandb_offline_run_is_written_inside_the_run_dir(tmp_path, toy_recipe, monkeypatch):
+    for var, value in {
+        "WANDB_SILENT": "true",
+        "WANDB_DISABLE_GIT": "true",
+        "WANDB_CONFIG_DIR": str(tmp_path / "wandb-config"),
+        "WANDB_CACHE_DIR": str(tmp_path / "wandb-cache"),
+        "WANDB_DATA_DIR": str(tmp_path / "wandb-data"),
+    }.items():
+        monkeypatch.setenv(var, value)
+    monkeypatch.delenv("WANDB_API_KEY", raising=False)
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    toy_recipe["tracking"] = {"wandb": True, "project": "codesign-tests", "group": "g"}
+    run_dir = runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "run", progress=False)
+    offline_runs = list((run_dir / "wandb").glob("offline-run-*"))
+    assert len(offline_runs) == 1
+    assert list(offline_runs[0].glob("*.wandb"))  # the run's data, ready for `wandb sync`
+    assert len(read_metrics(run_dir)) == 3  # the JSON-lines log is kept alongside
