@@ -1,0 +1,69 @@
+"""The one path by which gradients cross from the simulator to torch parameters.
+
+`simulate(sim, actions, volume=..., youngs_modulus=..., ...)` runs a differentiable rollout
+and returns torch tensors (robot centre of mass per frame, final particle state); calling
+`.backward()` on any loss built from them runs the simulator's checkpointed backward pass
+and delivers gradients to every torch input that requires them.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from codesign_mpm.engine import Simulator
+
+DESIGN_INPUTS = ("volume", "youngs_modulus", "muscle", "fiber")
+STATE_INPUTS = ("x0", "v0")
+
+
+def _run(sim: Simulator, checkpoint_every, actions: np.ndarray, design: dict, x0, v0):
+    sim.set_design(**design)
+    if x0 is not None or v0 is not None:
+        sim.set_initial_state(x=x0, v=v0)
+    return sim.rollout(actions, checkpoint_every=checkpoint_every)
+
+
+class _Rollout(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, sim: Simulator, checkpoint_every, actions, *inputs):
+        host = [None if t is None else t.detach().cpu().numpy() for t in inputs]
+        ctx.args = (sim, checkpoint_every, actions.detach().cpu().numpy(), dict(zip(DESIGN_INPUTS, host[:4])),
+                    *host[4:])
+        out = _run(*ctx.args)
+        ctx.rollout_id = sim.rollouts
+        ctx.present = [t is not None for t in inputs]
+        ctx.dtype, ctx.device = actions.dtype, actions.device
+        return tuple(torch.as_tensor(a, dtype=actions.dtype, device=actions.device)
+                     for a in (out.com_x, out.com_v, out.x, out.v))
+
+    @staticmethod
+    def backward(ctx, g_com_x, g_com_v, g_x, g_v):
+        def host(t):
+            return None if t is None else t.detach().cpu().numpy().astype(np.float64)
+
+        sim = ctx.args[0]
+        if sim.rollouts != ctx.rollout_id:  # another rollout ran since: recompute ours first
+            _run(*ctx.args)
+            ctx.rollout_id = sim.rollouts
+        grads = sim.backward(com_x=host(g_com_x), com_v=host(g_com_v), x=host(g_x), v=host(g_v))
+
+        def dev(a):
+            return torch.as_tensor(a, dtype=ctx.dtype, device=ctx.device)
+
+        per_input = [grads.volume, grads.youngs_modulus, grads.muscle, grads.fiber, grads.x0, grads.v0]
+        return (None, None, dev(grads.actions),
+                *(dev(g) if present else None for g, present in zip(per_input, ctx.present)))
+
+
+def simulate(sim: Simulator, actions: torch.Tensor, *, volume: torch.Tensor | None = None,
+             youngs_modulus: torch.Tensor | None = None, muscle: torch.Tensor | None = None,
+             fiber: torch.Tensor | None = None, x0: torch.Tensor | None = None, v0: torch.Tensor | None = None,
+             checkpoint_every: int | None = None) -> tuple[torch.Tensor, ...]:
+    """Differentiable rollout of len(actions) frames.
+
+    Returns (com_x (T+1, 3), com_v (T+1, 3), x (N, 3), v (N, 3)) for the robot's centre of
+    mass per frame and every particle at the end. Inputs left as None keep the simulator's
+    current values and receive no gradient. If other rollouts ran on the same simulator
+    before backward, this one is recomputed first (correct, at the cost of one forward).
+    """
+    return _Rollout.apply(sim, checkpoint_every, actions, volume, youngs_modulus, muscle, fiber, x0, v0)

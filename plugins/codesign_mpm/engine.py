@@ -1,0 +1,697 @@
+"""Differentiable 3-D MLS-MPM (APIC, quadratic B-splines) in Taichi.
+
+One substep is four kernels, each close to its equation:
+
+    bounds   -> the box of grid nodes the particles touch (only those are cleared and updated)
+    p2g      -> F <- (I + dt C) F; Kirchhoff stress (elastic model + muscle); scatter m v and
+                the MLS force/affine term to 27 nodes
+    grid_op  -> v = p / m + dt g; terrain (height-map SDF, Coulomb friction); domain walls
+    g2p      -> gather v and C; x <- x + dt v
+
+Particle state lives in `slots`: two (ping-pong) for plain simulation, or S + 1 for a
+differentiable segment of S substeps. A differentiable rollout stores the state only at
+segment starts (checkpoints) and recomputes each segment in the backward pass, so memory
+grows with T/S + S rather than T substeps. The grid is recomputed per substep in reverse.
+
+Only what the scene uses is compiled: the elastic models present, the muscle term when the
+scene has actuators, the terrain projection when there is terrain (`ti.static`).
+"""
+# (no `from __future__ import annotations`: Taichi reads kernel annotations at runtime)
+
+import math
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from codesign_mpm import runtime
+from codesign_mpm.materials import MATERIALS, wave_speed
+from codesign_mpm.sampling import Particles
+from codesign_mpm.scene import Scene, SceneError, validate_scene
+from codesign_mpm.terrain import height_map, normals
+
+MODEL_NAMES = {m.id: m.name for m in MATERIALS.values()}
+J_MIN = 0.1  # below this, neo-Hookean log(J) continues linearly (finite for J <= 0)
+MASS_EPS = 1e-12  # grid nodes lighter than this are treated as empty
+CAPACITY_STEP = 1024  # particle storage is allocated in these steps so similar scenes share kernels
+
+
+class SimulationError(RuntimeError):
+    """The state went non-finite or left the domain; the message says where and when."""
+
+
+@dataclass(frozen=True)
+class TimeStep:
+    dt: float  # the substep actually used
+    substeps: int  # per frame (control step), exact: substeps * dt == frame_dt
+    stable_dt: float  # the CFL bound for this scene
+
+
+def time_step(scene: Scene, particles: Particles) -> TimeStep:
+    """Substep from the CFL condition with the stiffest material and fastest initial speed.
+
+    dt <= cfl * dx / (c_p + |v|max), c_p = sqrt((lambda + 2 mu + 8 s) / rho). A forced `dt`
+    above that bound is refused unless `allow_unstable_dt` is set.
+    """
+    speeds = [wave_speed(e, nu, rho, r * e) for e, nu, rho, r in
+              set(zip(particles.youngs_modulus, particles.poisson_ratio, particles.density, particles.muscle_ratio))]
+    vmax = float(np.linalg.norm(particles.v, axis=1).max(initial=0.0))
+    stable = scene.cfl * scene.dx / (max(speeds) + vmax)
+    target = stable
+    if scene.dt is not None:
+        if scene.dt > stable and not scene.allow_unstable_dt:
+            raise SceneError(
+                f"dt = {scene.dt!r} is invalid: the CFL bound for this scene is {stable:.4g} "
+                f"(cfl {scene.cfl}, dx {scene.dx:.4g}, wave speed {max(speeds):.4g}, speed {vmax:.4g}); "
+                "use a smaller dt, leave dt null, or set allow_unstable_dt: true")
+        target = scene.dt
+    substeps = max(1, math.ceil(scene.frame_dt / target - 1e-9))
+    return TimeStep(scene.frame_dt / substeps, substeps, stable)
+
+
+@dataclass
+class Gradients:
+    """d loss / d inputs of a differentiable rollout (numpy)."""
+
+    actions: np.ndarray  # (T, K)
+    volume: np.ndarray  # (N,)   design: occupancy scales the volume (and so the mass)
+    youngs_modulus: np.ndarray  # (N,)
+    muscle: np.ndarray  # (N, K)
+    fiber: np.ndarray  # (N, 3)
+    x0: np.ndarray  # (N, 3)
+    v0: np.ndarray  # (N, 3)
+
+
+@dataclass
+class Rollout:
+    """What a differentiable rollout returns: robot centre of mass per frame, final particles."""
+
+    com_x: np.ndarray  # (T+1, 3), frame 0 is the initial state
+    com_v: np.ndarray  # (T+1, 3)
+    x: np.ndarray  # (N, 3) after T frames
+    v: np.ndarray  # (N, 3)
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Everything the compiled kernels depend on. Simulators with equal layouts share them."""
+
+    capacity: int  # particle slots (the live count is a kernel argument)
+    n_actuators: int
+    slots: int  # particle states kept: 2 (ping-pong) or segment + 1 (differentiable)
+    rows: int  # action / probe rows: max_frames + 1
+    grid_shape: tuple[int, int, int]
+    models: tuple[int, ...]  # elastic models compiled in
+    has_muscles: bool
+    has_terrain: bool
+    boundary_cells: int
+    requires_grad: bool
+
+
+@ti.data_oriented
+class _Storage:
+    """Taichi fields and kernels for one layout.
+
+    Taichi compiles kernels per set of fields, so a fresh storage costs a compile (about 3 s
+    forward, about 2 minutes for the backward kernels on 2 CPU cores when the offline cache is
+    cold). Storages are therefore pooled by layout and handed to the next simulator that needs
+    the same one (see `_acquire`).
+    """
+
+    def __init__(self, layout: Layout) -> None:
+        self.layout = layout
+        self.grid_shape = layout.grid_shape
+        self.models = layout.models
+        self.has_muscles = layout.has_muscles
+        self.has_terrain = layout.has_terrain
+        self.boundary_cells = layout.boundary_cells
+        n, K, gs, grad = layout.capacity, max(layout.n_actuators, 1), layout.grid_shape, layout.requires_grad
+        slots, rows = layout.slots, layout.rows
+        self.x = ti.Vector.field(3, float, shape=(slots, n), needs_grad=grad)
+        self.v = ti.Vector.field(3, float, shape=(slots, n), needs_grad=grad)
+        self.C = ti.Matrix.field(3, 3, float, shape=(slots, n), needs_grad=grad)
+        self.F = ti.Matrix.field(3, 3, float, shape=(slots, n), needs_grad=grad)
+        self.vol = ti.field(float, shape=n, needs_grad=grad)
+        self.E = ti.field(float, shape=n, needs_grad=grad)
+        self.nu = ti.field(float, shape=n)
+        self.rho = ti.field(float, shape=n)
+        self.material = ti.field(ti.i32, shape=n)
+        self.muscle = ti.Vector.field(K, float, shape=n, needs_grad=grad)
+        self.fiber = ti.Vector.field(3, float, shape=n, needs_grad=grad)
+        self.muscle_ratio = ti.field(float, shape=n)
+        self.probe_w = ti.field(float, shape=n)
+        self.act = ti.Vector.field(K, float, shape=rows, needs_grad=grad)
+        self.com_x = ti.Vector.field(3, float, shape=rows, needs_grad=grad)
+        self.com_v = ti.Vector.field(3, float, shape=rows, needs_grad=grad)
+        self.grid_v_in = ti.Vector.field(3, float, shape=gs, needs_grad=grad)
+        self.grid_m = ti.field(float, shape=gs, needs_grad=grad)
+        self.grid_v_out = ti.Vector.field(3, float, shape=gs, needs_grad=grad)
+        self.height = ti.field(float, shape=(gs[0], gs[2]))
+        self.normal = ti.Vector.field(3, float, shape=(gs[0], gs[2]))
+        self.lo = ti.Vector.field(3, ti.i32, shape=())
+        self.hi = ti.Vector.field(3, ti.i32, shape=())
+        self.dt = ti.field(float, shape=())
+        self.dx = ti.field(float, shape=())
+        self.gravity = ti.Vector.field(3, float, shape=())
+        self.friction = ti.field(float, shape=())
+        self.n_bad = ti.field(ti.i32, shape=())
+        self.first_bad = ti.field(ti.i32, shape=())
+        self.max_speed = ti.field(float, shape=())
+
+    @ti.kernel
+    def _load_state(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+                    C: ti.types.ndarray(), F: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                self.x[s, p][i] = x[p, i]
+                self.v[s, p][i] = v[p, i]
+                for j in ti.static(range(3)):
+                    self.C[s, p][i, j] = C[p, i, j]
+                    self.F[s, p][i, j] = F[p, i, j]
+
+    @ti.kernel
+    def _save_state(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+                    C: ti.types.ndarray(), F: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                x[p, i] = self.x[s, p][i]
+                v[p, i] = self.v[s, p][i]
+                for j in ti.static(range(3)):
+                    C[p, i, j] = self.C[s, p][i, j]
+                    F[p, i, j] = self.F[s, p][i, j]
+
+    @ti.kernel
+    def _save_grad(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+                   C: ti.types.ndarray(), F: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                x[p, i] = self.x.grad[s, p][i]
+                v[p, i] = self.v.grad[s, p][i]
+                for j in ti.static(range(3)):
+                    C[p, i, j] = self.C.grad[s, p][i, j]
+                    F[p, i, j] = self.F.grad[s, p][i, j]
+
+    @ti.kernel
+    def _add_grad(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+                  C: ti.types.ndarray(), F: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                self.x.grad[s, p][i] += x[p, i]
+                self.v.grad[s, p][i] += v[p, i]
+                for j in ti.static(range(3)):
+                    self.C.grad[s, p][i, j] += C[p, i, j]
+                    self.F.grad[s, p][i, j] += F[p, i, j]
+
+    @ti.func
+    def _base(self, xp):
+        """Lowest of the 27 nodes a particle touches, clamped inside the grid."""
+        hi = ti.Vector([self.grid_shape[0] - 3, self.grid_shape[1] - 3, self.grid_shape[2] - 3])
+        return ti.min(ti.max(ti.cast(xp / self.dx[None] - 0.5, ti.i32), 0), hi)
+
+    @ti.kernel
+    def _bounds(self, s: ti.i32, n: ti.i32):
+        self.lo[None] = ti.Vector([self.grid_shape[0], self.grid_shape[1], self.grid_shape[2]])
+        self.hi[None] = ti.Vector([0, 0, 0])
+        for p in range(n):
+            base = self._base(self.x[s, p])
+            for d in ti.static(range(3)):
+                ti.atomic_min(self.lo[None][d], base[d])
+                ti.atomic_max(self.hi[None][d], base[d] + 3)
+
+    @ti.func
+    def _elastic_stress(self, model: ti.template(), F, mu, la):
+        """Kirchhoff stress tau = P F^T of one elastic model."""
+        I = ti.Matrix.identity(float, 3)
+        J = F.determinant()
+        tau = ti.Matrix.zero(float, 3, 3)
+        if ti.static(model == MATERIALS["neo_hookean"].id):
+            log_j = ti.log(ti.max(J, J_MIN)) + ti.min(J - J_MIN, 0.0) / J_MIN
+            tau = mu * (F @ F.transpose() - I) + la * log_j * I
+        elif ti.static(model == MATERIALS["corotated"].id):
+            R, _ = ti.polar_decompose(F)
+            tau = 2.0 * mu * (F - R) @ F.transpose() + la * (J - 1.0) * J * I
+        elif ti.static(model == MATERIALS["stvk"].id):
+            G = 0.5 * (F.transpose() @ F - I)
+            tau = F @ (2.0 * mu * G + la * G.trace() * I) @ F.transpose()
+        return tau
+
+    @ti.kernel
+    def _p2g(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32):
+        for p in range(n):
+            dt, dx = self.dt[None], self.dx[None]
+            inv_dx = 1.0 / dx
+            base = self._base(self.x[s, p])
+            fx = self.x[s, p] * inv_dx - ti.cast(base, float)
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+            F = (ti.Matrix.identity(float, 3) + dt * self.C[s, p]) @ self.F[s, p]
+            self.F[so, p] = F
+            E, nu = self.E[p], self.nu[p]
+            mu = E / (2.0 * (1.0 + nu))
+            la = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+            tau = ti.Matrix.zero(float, 3, 3)
+            if ti.static(len(self.models) == 1):
+                tau = self._elastic_stress(self.models[0], F, mu, la)
+            else:
+                for model in ti.static(self.models):
+                    if self.material[p] == model:
+                        tau = self._elastic_stress(model, F, mu, la)
+            if ti.static(self.has_muscles):
+                Ff = F @ self.fiber[p]
+                a = self.act[t].dot(self.muscle[p])
+                tau += 4.0 * self.muscle_ratio[p] * E * (Ff.dot(Ff) - 1.0 - a) * Ff.outer_product(Ff)
+            vol = self.vol[p]
+            mass = self.rho[p] * vol
+            affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * self.C[s, p]
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                offset = ti.Vector([i, j, k])
+                dpos = (ti.cast(offset, float) - fx) * dx
+                weight = w[i][0] * w[j][1] * w[k][2]
+                self.grid_v_in[base + offset] += weight * (mass * self.v[s, p] + affine @ dpos)
+                self.grid_m[base + offset] += weight * mass
+
+    @ti.kernel
+    def _clear_grid(self):
+        for I in ti.grouped(ti.ndrange((self.lo[None][0], self.hi[None][0]), (self.lo[None][1], self.hi[None][1]),
+                                       (self.lo[None][2], self.hi[None][2]))):
+            self.grid_v_in[I] = ti.Vector.zero(float, 3)
+            self.grid_m[I] = 0.0
+
+    @ti.kernel
+    def _clear_grid_grad(self):
+        for I in ti.grouped(ti.ndrange((self.lo[None][0], self.hi[None][0]), (self.lo[None][1], self.hi[None][1]),
+                                       (self.lo[None][2], self.hi[None][2]))):
+            self.grid_v_in.grad[I] = ti.Vector.zero(float, 3)
+            self.grid_m.grad[I] = 0.0
+            self.grid_v_out.grad[I] = ti.Vector.zero(float, 3)
+
+    @ti.kernel
+    def _grid_op(self):
+        bc = ti.static(self.boundary_cells)
+        for I in ti.grouped(ti.ndrange((self.lo[None][0], self.hi[None][0]), (self.lo[None][1], self.hi[None][1]),
+                                       (self.lo[None][2], self.hi[None][2]))):
+            dt, dx, mu = self.dt[None], self.dx[None], self.friction[None]
+            m = self.grid_m[I]
+            v = ti.Vector.zero(float, 3)
+            if m > MASS_EPS:
+                v = self.grid_v_in[I] / m + dt * self.gravity[None]
+                if ti.static(self.has_terrain):
+                    nrm = self.normal[I[0], I[2]]
+                    if (ti.cast(I[1], float) * dx - self.height[I[0], I[2]]) * nrm[1] < 0:
+                        vn = v.dot(nrm)
+                        if vn < 0:
+                            vt = v - vn * nrm
+                            vt_norm = ti.sqrt(vt.dot(vt) + 1e-30)
+                            if vt_norm <= -mu * vn:
+                                v = ti.Vector.zero(float, 3)
+                            else:
+                                v = vt * (1.0 + mu * vn / vt_norm)
+                for d in ti.static(range(3)):
+                    if I[d] < bc and v[d] < 0:
+                        v[d] = 0.0
+                    if I[d] > self.grid_shape[d] - 1 - bc and v[d] > 0:
+                        v[d] = 0.0
+            self.grid_v_out[I] = v
+
+    @ti.kernel
+    def _g2p(self, s: ti.i32, so: ti.i32, n: ti.i32):
+        for p in range(n):
+            dt, inv_dx = self.dt[None], 1.0 / self.dx[None]
+            base = self._base(self.x[s, p])
+            fx = self.x[s, p] * inv_dx - ti.cast(base, float)
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+            new_v = ti.Vector.zero(float, 3)
+            new_C = ti.Matrix.zero(float, 3, 3)
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                offset = ti.Vector([i, j, k])
+                g_v = self.grid_v_out[base + offset]
+                weight = w[i][0] * w[j][1] * w[k][2]
+                new_v += weight * g_v
+                new_C += 4.0 * inv_dx * weight * g_v.outer_product(ti.cast(offset, float) - fx)
+            self.v[so, p] = new_v
+            self.C[so, p] = new_C
+            self.x[so, p] = self.x[s, p] + dt * new_v
+
+    @ti.kernel
+    def _probe(self, s: ti.i32, t: ti.i32, n: ti.i32):
+        """Mass-weighted sums of the tracked particles' x and v (divided by their mass later)."""
+        for p in range(n):
+            m = self.probe_w[p] * self.vol[p]
+            self.com_x[t] += m * self.x[s, p]
+            self.com_v[t] += m * self.v[s, p]
+
+    @ti.kernel
+    def _copy_slot(self, src: ti.i32, dst: ti.i32, n: ti.i32):
+        for p in range(n):
+            self.x[dst, p] = self.x[src, p]
+            self.v[dst, p] = self.v[src, p]
+            self.C[dst, p] = self.C[src, p]
+            self.F[dst, p] = self.F[src, p]
+
+    @ti.kernel
+    def _check(self, s: ti.i32, n: ti.i32):
+        """Count particles that are non-finite or outside the grid; remember the first one."""
+        self.n_bad[None] = 0
+        self.first_bad[None] = n
+        self.max_speed[None] = 0.0
+        for p in range(n):
+            x, v, F = self.x[s, p], self.v[s, p], self.F[s, p]
+            size = self.dx[None] * ti.Vector([self.grid_shape[0] - 1, self.grid_shape[1] - 1,
+                                              self.grid_shape[2] - 1])
+            magnitude = x.norm_sqr() + v.norm_sqr() + F.norm_sqr()
+            inside = (x >= 0).all() and (x <= size).all()
+            if not (magnitude < 1e30) or not inside:
+                self.n_bad[None] += 1
+                ti.atomic_min(self.first_bad[None], p)
+            ti.atomic_max(self.max_speed[None], v.norm())
+
+
+
+_free: dict[tuple[int, Layout], list[_Storage]] = {}
+
+
+def _acquire(layout: Layout) -> _Storage:
+    """A storage for `layout`: a released one if there is one (no compile), else a new one."""
+    free = _free.get((runtime.generation, layout))
+    return free.pop() if free else _Storage(layout)
+
+
+def _release(generation: int, storage: _Storage) -> None:
+    if generation == runtime.generation:
+        _free.setdefault((generation, storage.layout), []).append(storage)
+
+
+class Simulator:
+    """MLS-MPM simulation of one scene.
+
+    `requires_grad=True` allocates gradient storage for rollouts of up to `max_frames` frames
+    with a checkpoint every `checkpoint_every` substeps (default: the memory-optimal
+    sqrt(total / 2)). Without it, `step` advances the scene frame by frame at full speed.
+    Compiled kernels are reused from any earlier simulator of the same layout that has been
+    closed or garbage-collected.
+    """
+
+    def __init__(self, scene: Scene, particles: Particles, *, requires_grad: bool = False,
+                 max_frames: int = 1, checkpoint_every: int | None = None) -> None:
+        validate_scene(scene)
+        runtime.init_taichi(scene.arch, scene.dtype)
+        self.scene = scene
+        self.np_real = np.float64 if scene.dtype == "float64" else np.float32
+        self.timestep = time_step(scene, particles)
+        self.n = particles.n
+        self.n_actuators = particles.n_actuators
+        self.requires_grad = requires_grad
+        self.max_frames = max_frames
+        self.segment = checkpoint_every or max(1, math.ceil(math.sqrt(max_frames * self.timestep.substeps / 2)))
+        self.body_names = [b.name for b in scene.bodies]
+        self.layout = Layout(
+            capacity=-(-particles.n // CAPACITY_STEP) * CAPACITY_STEP,
+            n_actuators=particles.n_actuators,
+            slots=self.segment + 1 if requires_grad else 2,
+            rows=max_frames + 1,
+            grid_shape=scene.grid_shape,
+            models=tuple(sorted(set(int(m) for m in particles.material))),
+            has_muscles=particles.n_actuators > 0 and bool(np.any(particles.muscle_ratio > 0)),
+            has_terrain=scene.terrain.kind != "none",
+            boundary_cells=scene.boundary_cells,
+            requires_grad=requires_grad,
+        )
+        self.k = _acquire(self.layout)
+        self._generation = runtime.generation
+        self._finalizer = weakref.finalize(self, _release, self._generation, self.k)
+        self._initial_CF: tuple[np.ndarray, np.ndarray] | None = None
+        self.rollouts = 0
+        self._set_constants()
+        self.reset(particles)
+
+    def close(self) -> None:
+        """Hand the compiled storage back for reuse; the simulator is unusable afterwards."""
+        self._finalizer()
+        self.k = None
+
+    def _set_constants(self) -> None:
+        s, k = self.scene, self.k
+        k.dt[None] = self.timestep.dt
+        k.dx[None] = s.dx
+        k.gravity[None] = s.gravity
+        k.friction[None] = s.terrain.friction
+        h = height_map(s)
+        k.height.from_numpy(h.astype(self.np_real))
+        k.normal.from_numpy(normals(h, s.dx).astype(self.np_real))
+
+    def _put(self, field, values: np.ndarray) -> None:
+        """Write per-particle values, padded with zeros up to the storage capacity."""
+        full = np.zeros((self.layout.capacity,) + values.shape[1:], dtype=values.dtype)
+        full[:self.n] = values
+        field.from_numpy(full)
+
+    def reset(self, particles: Particles | None = None) -> None:
+        """Go back to the initial state, optionally of new particles.
+
+        New particles (for the same scene domain and terrain) must have the same count,
+        actuators and material models; the CFL time step is recomputed for them.
+        """
+        self._check_alive()
+        if particles is not None:
+            if (particles.n, particles.n_actuators) != (self.n, self.n_actuators) or \
+                    not set(particles.material.tolist()) <= set(self.layout.models):
+                raise ValueError("reset() needs particles with the same count, actuators and "
+                                 "material models as the simulator was built for")
+            self.particles = particles
+            self.timestep = time_step(self.scene, particles)
+            self.k.dt[None] = self.timestep.dt
+            self._initial_CF = None
+        p, r, k = self.particles, self.np_real, self.k
+        self._put(k.vol, p.volume.astype(r))
+        self._put(k.E, p.youngs_modulus.astype(r))
+        self._put(k.nu, p.poisson_ratio.astype(r))
+        self._put(k.rho, p.density.astype(r))
+        self._put(k.material, p.material.astype(np.int32))
+        self._put(k.muscle, (p.muscle if self.n_actuators else np.zeros((self.n, 1))).astype(r))
+        self._put(k.fiber, p.fiber.astype(r))
+        self._put(k.muscle_ratio, p.muscle_ratio.astype(r))
+        tracked = p.robot if p.robot.any() else np.ones(self.n, dtype=bool)
+        self._probe_density = np.where(tracked, p.density, 0.0)  # mass of particle p = this * volume
+        self._put(k.probe_w, self._probe_density.astype(r))
+        C0, F0 = self._initial_CF if self._initial_CF is not None else \
+            (np.zeros((self.n, 3, 3)), np.tile(np.eye(3), (self.n, 1, 1)))
+        k._load_state(0, self.n, *(np.ascontiguousarray(a, dtype=r) for a in (p.x, p.v, C0, F0)))
+        self.frame = 0
+        self._slot = 0
+
+    def set_initial_state(self, x=None, v=None, C=None, F=None) -> None:
+        """Replace parts of the initial state (numpy, live particles only) and reset to it.
+
+        Positions and velocities default to the particles'; C to zero and F to identity.
+        """
+        p = self.particles
+        for name, value in (("x", x), ("v", v)):
+            if value is not None:
+                setattr(p, name, np.asarray(value, dtype=np.float64).reshape(self.n, 3))
+        if C is not None or F is not None:
+            C0, F0 = self._initial_CF or (np.zeros((self.n, 3, 3)), np.tile(np.eye(3), (self.n, 1, 1)))
+            self._initial_CF = (C0 if C is None else np.asarray(C, dtype=np.float64).reshape(self.n, 3, 3),
+                                F0 if F is None else np.asarray(F, dtype=np.float64).reshape(self.n, 3, 3))
+        self.reset()
+
+    def set_design(self, volume=None, youngs_modulus=None, muscle=None, fiber=None) -> None:
+        """Overwrite per-particle design fields (numpy); the initial state is reset."""
+        p = self.particles
+        for name, value in (("volume", volume), ("youngs_modulus", youngs_modulus),
+                            ("muscle", muscle), ("fiber", fiber)):
+            if value is not None:
+                value = np.asarray(value, dtype=np.float64)
+                if value.shape != getattr(p, name).shape:
+                    raise ValueError(f"{name} must have shape {getattr(p, name).shape}, got {value.shape}")
+                setattr(p, name, value)
+        self.reset()
+
+    def _check_alive(self) -> None:
+        if self.k is None:
+            raise RuntimeError("this simulator was closed")
+        if self._generation != runtime.generation:
+            raise RuntimeError("Taichi was re-initialised (another arch or dtype) after this simulator "
+                               "was built; build a new Simulator")
+
+    # ------------------------------------------------------------------ stepping
+    def _substep(self, s: int, so: int, t: int) -> None:
+        """One substep from slot s into slot so, holding action row t."""
+        self._grid_update(s, so, t)
+        self.k._g2p(s, so, self.n)
+
+    def _grid_update(self, s: int, so: int, t: int) -> None:
+        if self.scene.grid_region == "full":
+            self.k.lo[None] = [0, 0, 0]
+            self.k.hi[None] = list(self.layout.grid_shape)
+        else:
+            self.k._bounds(s, self.n)
+        self.k._clear_grid()
+        self.k._p2g(s, so, t, self.n)
+        self.k._grid_op()
+
+    def _substep_grad(self, s: int, t: int) -> None:
+        """Reverse of substep s -> s + 1: recompute its grid, then the adjoint kernels."""
+        self._grid_update(s, s + 1, t)
+        self.k._clear_grid_grad()
+        self.k._g2p.grad(s, s + 1, self.n)
+        self.k._grid_op.grad()
+        self.k._p2g.grad(s, s + 1, t, self.n)
+
+    def _guard(self, slot: int, substep: int) -> None:
+        """Stop with a clear error if the state went non-finite, left the grid or broke CFL."""
+        self.k._check(slot, self.n)
+        bad = self.k.n_bad[None]
+        if bad:
+            self._raise_at(self.k.first_bad[None], slot, substep,
+                           f"{bad} particle(s) non-finite or outside the domain")
+        if self.k.max_speed[None] * self.timestep.dt > self.scene.dx:
+            raise SimulationError(
+                f"at substep {substep} (frame {substep // self.timestep.substeps}) a particle moves "
+                f"{self.k.max_speed[None] * self.timestep.dt / self.scene.dx:.2f} cells per substep "
+                f"(speed {self.k.max_speed[None]:.4g}): the time step is too large for this motion; "
+                "lower scene.cfl or scene.dt")
+
+    def _raise_at(self, p: int, slot: int, substep: int, what: str) -> None:
+        body = int(self.particles.body[p])
+        model = MODEL_NAMES[int(self.particles.material[p])]
+        x = self.particles_state(slot)[0][p]
+        raise SimulationError(
+            f"{what} at substep {substep} (frame {substep // self.timestep.substeps}); first: particle {p} "
+            f"of body '{self.body_names[body]}' ({model}) at x={np.round(x, 5).tolist()}")
+
+    def step(self, action: np.ndarray | None = None, frames: int = 1) -> None:
+        """Advance `frames` control steps holding `action` (K,) over their substeps (no gradients)."""
+        self._check_alive()
+        if self.n_actuators:
+            a = np.zeros(self.n_actuators) if action is None else np.asarray(action, dtype=np.float64)
+            if a.shape != (self.n_actuators,):
+                raise ValueError(f"action must have shape ({self.n_actuators},), got {a.shape}")
+            self.k.act[0] = a.astype(self.np_real)
+        if self._slot > 1:  # after a rollout: continue from its last state
+            self.k._copy_slot(self._slot, 0, self.n)
+            self._slot = 0
+        spf = self.timestep.substeps
+        for _ in range(frames):
+            for _ in range(spf):
+                self._substep(self._slot, 1 - self._slot, 0)
+                self._slot = 1 - self._slot
+            self.frame += 1
+            self._guard(self._slot, self.frame * spf)
+
+    def particles_state(self, slot: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(x, v, C, F) of the current (or given) slot as numpy arrays."""
+        r = self.np_real
+        out = (np.empty((self.n, 3), r), np.empty((self.n, 3), r), np.empty((self.n, 3, 3), r),
+               np.empty((self.n, 3, 3), r))
+        self.k._save_state(self._slot if slot is None else slot, self.n, *out)
+        return out
+
+    # ------------------------------------------------------------------ differentiable rollout
+    def rollout(self, actions: np.ndarray, checkpoint_every: int | None = None) -> Rollout:
+        """Run len(actions) frames from the initial state, storing checkpoints for `backward`.
+
+        `checkpoint_every` (substeps) may be lowered per rollout, down to 1; it cannot exceed
+        the simulator's, which sized the storage.
+        """
+        self._check_alive()
+        if not self.requires_grad:
+            raise RuntimeError("rollout() needs Simulator(..., requires_grad=True)")
+        S = checkpoint_every or self.segment
+        if not 1 <= S <= self.segment:
+            raise ValueError(f"checkpoint_every must be in [1, {self.segment}], got {S}")
+        self._rollout_segment = S
+        self.rollouts += 1  # lets callers (the torch bridge) tell whether backward() is still theirs
+        actions = np.asarray(actions, dtype=np.float64).reshape(-1, self.n_actuators)
+        T = len(actions)
+        if not 1 <= T <= self.max_frames:
+            raise ValueError(f"a rollout takes 1 to max_frames={self.max_frames} frames, got {T}")
+        self.reset()
+        act = np.zeros((self.max_frames + 1, max(self.n_actuators, 1)))
+        act[:T, :self.n_actuators] = actions
+        self.k.act.from_numpy(act.astype(self.np_real))
+        self.k.com_x.fill(0)
+        self.k.com_v.fill(0)
+        spf = self.timestep.substeps
+        total = T * spf
+        self._T = T
+        self._checkpoints = []
+        self.k._probe(0, 0, self.n)
+        for g0 in range(0, total, S):
+            self._checkpoints.append(self.particles_state(0))
+            L = min(S, total - g0)
+            for s in range(L):
+                g = g0 + s
+                self._substep(s, s + 1, g // spf)
+                if (g + 1) % spf == 0:
+                    self.k._probe(s + 1, (g + 1) // spf, self.n)
+            self._slot = L
+            self._guard(L, g0 + L)
+            if g0 + L < total:
+                self.k._copy_slot(L, 0, self.n)
+                self._slot = 0
+        x, v, _, _ = self.particles_state(self._slot)
+        self.frame = T
+        self._tracked_mass = float(self._probe_density @ self.particles.volume)
+        self._com = (self.k.com_x.to_numpy()[:T + 1] / self._tracked_mass,
+                     self.k.com_v.to_numpy()[:T + 1] / self._tracked_mass)
+        return Rollout(self._com[0].astype(np.float64), self._com[1].astype(np.float64),
+                       x.astype(np.float64), v.astype(np.float64))
+
+    def backward(self, com_x=None, com_v=None, x=None, v=None) -> Gradients:
+        """Back-propagate d loss / d outputs of the last `rollout` to its inputs (repeatable).
+
+        Each segment is recomputed from its checkpoint, then differentiated substep by substep
+        in reverse; the gradient of a segment's first state carries into the previous one.
+        """
+        self._check_alive()
+        if not getattr(self, "_checkpoints", None):
+            raise RuntimeError("backward() needs a preceding rollout()")
+        T, spf, S, n, r = self._T, self.timestep.substeps, self._rollout_segment, self.n, self.np_real
+        for f in (self.k.vol, self.k.E, self.k.muscle, self.k.fiber, self.k.act, self.k.com_x, self.k.com_v):
+            f.grad.fill(0)
+        # com = S / M with S the probe's mass-weighted sum and M the tracked mass:
+        # dL/dS = g / M goes through the probe kernel, dL/dM = -sum(g . com) / M is added below
+        rows, M = self.max_frames + 1, self._tracked_mass
+        dL_dM = 0.0
+        for field, g, com in ((self.k.com_x, com_x, self._com[0]), (self.k.com_v, com_v, self._com[1])):
+            full = np.zeros((rows, 3), r)
+            if g is not None:
+                g = np.asarray(g, dtype=np.float64).reshape(T + 1, 3)
+                full[:T + 1] = g / M
+                dL_dM -= float((g * com).sum()) / M
+            field.grad.from_numpy(full)
+        zeros33 = np.zeros((n, 3, 3), r)
+        carry = (np.ascontiguousarray(np.zeros((n, 3)) if x is None else x, dtype=r),
+                 np.ascontiguousarray(np.zeros((n, 3)) if v is None else v, dtype=r), zeros33, zeros33)
+        total = T * spf
+        starts = list(range(0, total, S))
+        for k in reversed(range(len(starts))):
+            g0 = starts[k]
+            L = min(S, total - g0)
+            self.k._load_state(0, n, *self._checkpoints[k])
+            for s in range(L):  # recompute the segment's states
+                self._substep(s, s + 1, (g0 + s) // spf)
+            for f in (self.k.x, self.k.v, self.k.C, self.k.F):
+                f.grad.fill(0)
+            self.k._add_grad(L, n, *carry)
+            for s in reversed(range(L)):
+                g = g0 + s
+                if (g + 1) % spf == 0:
+                    self.k._probe.grad(s + 1, (g + 1) // spf, n)
+                self._substep_grad(s, g // spf)
+            if g0 == 0:
+                self.k._probe.grad(0, 0, n)
+            carry = (np.empty((n, 3), r), np.empty((n, 3), r), np.empty((n, 3, 3), r), np.empty((n, 3, 3), r))
+            self.k._save_grad(0, n, *carry)
+        K = self.n_actuators
+        grads = Gradients(
+            actions=self.k.act.grad.to_numpy()[:T, :K].astype(np.float64),
+            volume=self.k.vol.grad.to_numpy()[:n].astype(np.float64) + dL_dM * self._probe_density,
+            youngs_modulus=self.k.E.grad.to_numpy()[:n].astype(np.float64),
+            muscle=self.k.muscle.grad.to_numpy()[:n, :K].astype(np.float64),
+            fiber=self.k.fiber.grad.to_numpy()[:n].astype(np.float64),
+            x0=carry[0].astype(np.float64), v0=carry[1].astype(np.float64))
+        for name in ("actions", "volume", "youngs_modulus", "x0", "v0"):
+            if not np.isfinite(getattr(grads, name)).all():
+                raise SimulationError(f"the backward pass produced non-finite gradients for {name}")
+        return grads

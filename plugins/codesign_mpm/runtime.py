@@ -1,0 +1,35 @@
+"""One place that initialises Taichi, so the arch and precision are chosen once, by the scene."""
+from __future__ import annotations
+
+import os
+
+import taichi as ti
+
+_current: tuple[str, str] | None = None
+generation = 0  # bumped on every re-initialisation; simulators built before it are dead
+
+
+def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
+    """Initialise (or re-initialise, if arch/dtype changed) Taichi with the offline cache on.
+
+    Re-initialising frees every field, so simulators from an earlier configuration stop
+    working; `Simulator` checks `generation` and says so instead of crashing.
+    """
+    global _current, generation
+    wanted = (arch, dtype)
+    if _current == wanted:
+        return
+    if _current is not None:
+        ti.reset()
+    arch_obj = {"cpu": ti.cpu, "cuda": ti.cuda, "gpu": ti.gpu, "vulkan": ti.vulkan, "metal": ti.metal}[arch]
+    cache_dir = os.environ.get("CODESIGN_TAICHI_CACHE")  # default: Taichi's own (~/.cache/taichi)
+    ti.init(
+        arch=arch_obj,
+        default_fp=ti.f64 if dtype == "float64" else ti.f32,
+        default_ip=ti.i32,
+        offline_cache=True,
+        **({"offline_cache_file_path": cache_dir} if cache_dir else {}),
+        log_level=ti.WARN,
+    )
+    _current = wanted
+    generation += 1

@@ -1,0 +1,183 @@
+"""Turn body specs into particles: lattice sampling inside shapes, muscles, materials.
+
+Particle volume is the lattice cell actually used (spacing^3), so mass and stiffness do not
+change with the sampling density (the old code used dx^3 for every particle).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from codesign_mpm.materials import MATERIALS
+from codesign_mpm.scene import BodySpec, Scene, SceneError, ShapeSpec
+from codesign_mpm.terrain import height_map
+
+
+@dataclass
+class Particles:
+    """Initial particle state and per-particle material / design fields (numpy, float64)."""
+
+    x: np.ndarray  # (N,3)
+    v: np.ndarray  # (N,3)
+    volume: np.ndarray  # (N,)
+    density: np.ndarray  # (N,)
+    youngs_modulus: np.ndarray  # (N,)
+    poisson_ratio: np.ndarray  # (N,)
+    material: np.ndarray  # (N,) int model id
+    muscle: np.ndarray  # (N,K) membership r_p
+    fiber: np.ndarray  # (N,3) unit fibre direction f_p
+    muscle_ratio: np.ndarray  # (N,) muscle stiffness s_p / E_p
+    body: np.ndarray  # (N,) index of the body in scene.bodies
+    robot: np.ndarray  # (N,) bool
+
+    @property
+    def n(self) -> int:
+        return len(self.x)
+
+    @property
+    def n_actuators(self) -> int:
+        return self.muscle.shape[1]
+
+
+def lattice(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
+    """Points at cell centres of a regular lattice covering [lo, hi]."""
+    axes = [np.arange(a + spacing / 2, b, spacing) for a, b in zip(lo, hi)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def _load_points(path: Path) -> np.ndarray:
+    if path.suffix == ".npy":
+        return np.asarray(np.load(path), dtype=np.float64).reshape(-1, 3)
+    if path.suffix == ".xyz":
+        return np.loadtxt(path)[:, :3]
+    import trimesh
+
+    return np.asarray(trimesh.load(path).vertices, dtype=np.float64)
+
+
+def _shape_points(key: str, shape: ShapeSpec, spacing: float) -> tuple[np.ndarray, float]:
+    """Particle offsets from the body centre and the volume each one stands for."""
+    vol = spacing ** 3
+    if shape.kind in ("box", "ellipsoid"):
+        half = np.asarray(shape.size, dtype=float) / 2
+        p = lattice(-half, half, spacing)
+        if shape.kind == "ellipsoid":
+            p = p[((p / half) ** 2).sum(1) <= 1]
+        return p, vol
+    if shape.kind == "sphere":
+        r = shape.radius
+        p = lattice(np.full(3, -r), np.full(3, r), spacing)
+        return p[(p ** 2).sum(1) <= r * r], vol
+    if shape.kind == "capsule":
+        r, h = shape.radius, shape.length / 2
+        p = lattice(np.array([-h - r, -r, -r]), np.array([h + r, r, r]), spacing)
+        axial = np.clip(p[:, 0], -h, h)
+        return p[(p[:, 0] - axial) ** 2 + p[:, 1] ** 2 + p[:, 2] ** 2 <= r * r], vol
+    path = Path(shape.file or "")
+    if not path.is_file():
+        raise SceneError(f"{key}.shape.file = {shape.file!r} is invalid: no such file")
+    if shape.kind == "voxels":
+        occ = np.load(path).astype(bool)
+        if occ.ndim != 3:
+            raise SceneError(f"{key}.shape.file = {shape.file!r} is invalid: need a 3-D boolean array")
+        size = np.asarray(occ.shape) * shape.voxel_size
+        p = lattice(-size / 2, size / 2, spacing)
+        idx = np.clip(((p + size / 2) / shape.voxel_size).astype(int), 0, np.asarray(occ.shape) - 1)
+        return p[occ[idx[:, 0], idx[:, 1], idx[:, 2]]], vol
+    if shape.kind == "mesh":
+        import trimesh
+
+        mesh = trimesh.load(path, force="mesh")
+        lo, hi = mesh.bounds
+        mesh.apply_translation(-(lo + hi) / 2)
+        mesh.apply_scale(shape.scale / (hi - lo).max())
+        lo, hi = mesh.bounds
+        p = lattice(lo, hi, spacing)
+        return p[mesh.contains(p)], vol
+    # points: used as given; each stands for the volume of the lattice cells it occupies
+    pts = _load_points(path)
+    lo, hi = pts.min(0), pts.max(0)
+    pts = (pts - (lo + hi) / 2) * (shape.scale / (hi - lo).max())
+    h = (np.prod(np.maximum(hi - lo, 1e-12)) * (shape.scale / (hi - lo).max()) ** 3 / len(pts)) ** (1 / 3)
+    cells = np.unique(np.floor(pts / h).astype(np.int64), axis=0)
+    return pts, len(cells) * h ** 3 / len(pts)
+
+
+def rotation_matrix(degrees: list[float]) -> np.ndarray:
+    """Rotation about x, then y, then z (extrinsic), angles in degrees."""
+    rx, ry, rz = np.radians(degrees)
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+def _muscles(offsets: np.ndarray, groups: list[int]) -> np.ndarray:
+    """One-hot membership (N, prod(groups)) of a grid of muscle blocks over the bounding box."""
+    lo, hi = offsets.min(0), offsets.max(0)
+    rel = (offsets - lo) / np.maximum(hi - lo, 1e-12)
+    g = np.asarray(groups)
+    cell = np.minimum((rel * g).astype(int), g - 1)
+    index = (cell[:, 0] * g[1] + cell[:, 1]) * g[2] + cell[:, 2]
+    return np.eye(int(np.prod(g)))[index]
+
+
+def build_particles(scene: Scene) -> Particles:
+    """Sample every body of a (validated) scene; actuators of all bodies are numbered in order."""
+    parts = []
+    for i, body in enumerate(scene.bodies):
+        parts.append(_body_particles(scene, i, body))
+    k_total = sum(p["muscle"].shape[1] for p in parts)
+    start = 0
+    for p in parts:
+        k = p["muscle"].shape[1]
+        full = np.zeros((len(p["x"]), k_total))
+        full[:, start:start + k] = p["muscle"]
+        p["muscle"], start = full, start + k
+    cat = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+    return Particles(**cat)
+
+
+def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarray]:
+    key = f"bodies[{i}]"
+    per_axis = round(body.particles_per_cell ** (1 / 3))
+    offsets, vol = _shape_points(key, body.shape, scene.dx / per_axis)
+    if len(offsets) == 0:
+        raise SceneError(f"{key}.shape = {body.shape!r} is invalid: it holds no particle at "
+                         f"dx={scene.dx}; make it larger or the grid finer")
+    local = offsets
+    offsets = local @ rotation_matrix(body.rotation).T
+    center = np.asarray(body.center, dtype=float)
+    if body.rest_on_terrain:
+        heights = height_map(scene)
+        ij = np.clip(np.round((offsets[:, [0, 2]] + center[[0, 2]]) / scene.dx).astype(int), 0,
+                     np.asarray(heights.shape) - 1)
+        ground = heights[ij[:, 0], ij[:, 1]].max()
+        center[1] = ground + scene.dx - offsets[:, 1].min()
+    x = offsets + center
+    margin = scene.dx * scene.boundary_cells
+    lo_ok = (x >= margin).all()
+    hi_ok = (x <= np.asarray(scene.size) - margin).all()
+    if not (lo_ok and hi_ok):
+        raise SceneError(f"{key}.center = {center.tolist()} is invalid: the body spans "
+                         f"{x.min(0).round(4).tolist()} to {x.max(0).round(4).tolist()}, outside the "
+                         f"domain interior [{margin:.4g}, size - {margin:.4g}] for size {list(scene.size)}")
+    n = len(x)
+    mat = body.material
+    if body.muscles is not None:
+        muscle = _muscles(local, list(body.muscles.groups))
+        fiber = rotation_matrix(body.rotation) @ np.asarray(body.muscles.fiber, dtype=float)
+        fiber = np.tile(fiber / np.linalg.norm(fiber), (n, 1))
+        ratio = body.muscles.stiffness_ratio
+    else:
+        muscle, fiber, ratio = np.zeros((n, 0)), np.tile([1.0, 0, 0], (n, 1)), 0.0
+    return dict(
+        x=x, v=np.tile(np.asarray(body.velocity, dtype=float), (n, 1)), volume=np.full(n, vol),
+        density=np.full(n, mat.density), youngs_modulus=np.full(n, mat.youngs_modulus),
+        poisson_ratio=np.full(n, mat.poisson_ratio),
+        material=np.full(n, MATERIALS[mat.kind].id, dtype=np.int32), muscle=muscle, fiber=fiber,
+        muscle_ratio=np.full(n, ratio), body=np.full(n, i, dtype=np.int32),
+        robot=np.full(n, body.robot, dtype=bool))

@@ -1,0 +1,199 @@
+"""Scenes as data: domain, terrain, bodies and time stepping.
+
+Everything here is a plain dataclass, so a scene round-trips through YAML (omegaconf) and
+can be validated before Taichi is even imported. `validate_scene` turns bad input into a
+`SceneError` that names the key, the bad value and what is allowed.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+from codesign_mpm.materials import MATERIALS, material_names
+
+SHAPE_KINDS = ("box", "sphere", "ellipsoid", "capsule", "mesh", "points", "voxels")
+TERRAIN_KINDS = ("none", "flat", "incline", "perlin")
+DTYPES = ("float32", "float64")
+ARCHS = ("cpu", "cuda", "gpu", "vulkan", "metal")
+GRID_REGIONS = ("bbox", "full")
+
+
+class SceneError(ValueError):
+    """A scene that cannot be simulated as written; the message names key, value and remedy."""
+
+
+@dataclass
+class ShapeSpec:
+    """Where material is. Which fields matter depends on `kind`."""
+
+    kind: str = "box"
+    size: List[float] = field(default_factory=lambda: [0.1, 0.1, 0.1])  # box extents, ellipsoid diameters
+    radius: float = 0.05  # sphere, capsule
+    length: float = 0.1  # capsule: length of the axis segment (along x)
+    file: Optional[str] = None  # mesh (anything trimesh loads), points (.npy/.ply/.xyz), voxels (.npy bool)
+    scale: float = 1.0  # mesh / points: the file's longest extent becomes `scale` scene units
+    voxel_size: float = 0.01  # voxels: edge of one voxel in scene units
+
+
+@dataclass
+class MaterialSpec:
+    """A constitutive model by name with its parameters (scene units)."""
+
+    kind: str = "neo_hookean"
+    youngs_modulus: float = 1.0e4
+    poisson_ratio: float = 0.2
+    density: float = 1.0e3
+
+
+@dataclass
+class MuscleSpec:
+    """Muscle groups laid out as a grid over the body's bounding box, all fibres along `fiber`.
+
+    `groups: [2, 2, 1]` gives four actuators (front/back x bottom/top). The muscle energy is
+    s (|F f|^2 - (1 + a))^2 with s = stiffness_ratio * E_p and a = u . r_p.
+    """
+
+    groups: List[int] = field(default_factory=lambda: [2, 2, 1])
+    fiber: List[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])
+    stiffness_ratio: float = 1.0
+
+
+@dataclass
+class BodySpec:
+    name: str = "body"
+    shape: ShapeSpec = field(default_factory=ShapeSpec)
+    material: MaterialSpec = field(default_factory=MaterialSpec)
+    center: List[float] = field(default_factory=lambda: [0.5, 0.5, 0.5])
+    rotation: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # degrees about x, then y, then z
+    rest_on_terrain: bool = False  # move the body down/up so it sits one cell above the terrain
+    velocity: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    particles_per_cell: int = 8  # a cube number: 1, 8, 27 or 64 particles on a regular lattice
+    muscles: Optional[MuscleSpec] = None
+    robot: bool = False  # the body whose centre of mass the tasks track
+
+
+@dataclass
+class TerrainSpec:
+    """A height map y = h(x, z) acting as a frictional boundary on the grid."""
+
+    kind: str = "flat"
+    height: float = 0.05  # base height
+    friction: float = 0.5  # Coulomb coefficient mu (ground 0.5, ice 0.05)
+    slope_deg: float = 0.0  # incline: the surface rises along +x at this angle
+    amplitude: float = 0.02  # perlin: peak-to-peak height range
+    roughness: float = 0.5  # perlin: amplitude ratio between octaves (0..1)
+    frequency: float = 4.0  # perlin: features per unit length of the first octave
+    octaves: int = 3
+    seed: int = 0
+
+
+@dataclass
+class Scene:
+    """A complete simulation setup in scene units (the paper: unit cube, gravity 3.8)."""
+
+    size: List[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
+    dx: float = 1.0 / 64
+    gravity: List[float] = field(default_factory=lambda: [0.0, -3.8, 0.0])
+    terrain: TerrainSpec = field(default_factory=TerrainSpec)
+    bodies: List[BodySpec] = field(default_factory=list)
+    frame_dt: float = 8e-3  # one control step; actions are held over its substeps
+    cfl: float = 0.4  # dt <= cfl * dx / (wave speed + speed)
+    dt: Optional[float] = None  # force a (smaller) substep
+    allow_unstable_dt: bool = False  # accept a dt above the CFL bound (you were warned)
+    dtype: str = "float32"
+    arch: str = "cpu"
+    grid_region: str = "bbox"  # bbox: clear and update only the nodes particles touch; full: the whole grid
+    boundary_cells: int = 3  # walls: nodes this close to the domain edge block outward motion
+
+    @property
+    def grid_shape(self) -> tuple[int, int, int]:
+        return tuple(int(round(s / self.dx)) + 1 for s in self.size)  # type: ignore[return-value]
+
+
+def _fail(key: str, value, allowed: str) -> None:
+    raise SceneError(f"{key} = {value!r} is invalid: {allowed}")
+
+
+def _check_vec(key: str, value, n: int = 3) -> None:
+    if len(value) != n or not all(math.isfinite(float(v)) for v in value):
+        _fail(key, list(value), f"expected {n} finite numbers")
+
+
+def validate_scene(scene: Scene) -> None:
+    """Check everything that does not need particles; raise SceneError on the first problem."""
+    _check_vec("size", scene.size)
+    if min(scene.size) <= 0:
+        _fail("size", list(scene.size), "every extent must be > 0")
+    if not scene.dx > 0:
+        _fail("dx", scene.dx, "must be > 0")
+    if min(scene.grid_shape) < 2 * scene.boundary_cells + 4:
+        _fail("dx", scene.dx, f"too coarse for size {list(scene.size)}: need at least "
+              f"{2 * scene.boundary_cells + 4} cells along every axis")
+    _check_vec("gravity", scene.gravity)
+    if not scene.frame_dt > 0:
+        _fail("frame_dt", scene.frame_dt, "must be > 0")
+    if not 0 < scene.cfl <= 1:
+        _fail("cfl", scene.cfl, "must be in (0, 1]; 0.3 to 0.5 is typical")
+    if scene.dt is not None and not scene.dt > 0:
+        _fail("dt", scene.dt, "must be > 0 (or null to derive it from the CFL condition)")
+    for key, value, allowed in (("dtype", scene.dtype, DTYPES), ("arch", scene.arch, ARCHS),
+                                ("grid_region", scene.grid_region, GRID_REGIONS),
+                                ("terrain.kind", scene.terrain.kind, TERRAIN_KINDS)):
+        if value not in allowed:
+            _fail(key, value, f"one of {', '.join(allowed)}")
+    t = scene.terrain
+    if t.friction < 0:
+        _fail("terrain.friction", t.friction, "must be >= 0")
+    if t.kind != "none" and not 0 <= t.height < scene.size[1]:
+        _fail("terrain.height", t.height, f"must be in [0, {scene.size[1]})")
+    if not -60 <= t.slope_deg <= 60:
+        _fail("terrain.slope_deg", t.slope_deg, "must be in [-60, 60] degrees")
+    if not scene.bodies:
+        _fail("bodies", [], "a scene needs at least one body")
+    robots = [b.name for b in scene.bodies if b.robot]
+    if len(robots) > 1:
+        _fail("bodies", robots, "at most one body may be the robot")
+    for i, body in enumerate(scene.bodies):
+        _validate_body(f"bodies[{i}]", body)
+
+
+def _validate_body(key: str, body: BodySpec) -> None:
+    shape, mat = body.shape, body.material
+    if shape.kind not in SHAPE_KINDS:
+        _fail(f"{key}.shape.kind", shape.kind, f"one of {', '.join(SHAPE_KINDS)}")
+    if shape.kind in ("box", "ellipsoid"):
+        _check_vec(f"{key}.shape.size", shape.size)
+        if min(shape.size) <= 0:
+            _fail(f"{key}.shape.size", list(shape.size), "every extent must be > 0")
+    if shape.kind in ("sphere", "capsule") and not shape.radius > 0:
+        _fail(f"{key}.shape.radius", shape.radius, "must be > 0")
+    if shape.kind == "capsule" and not shape.length >= 0:
+        _fail(f"{key}.shape.length", shape.length, "must be >= 0")
+    if shape.kind in ("mesh", "points", "voxels") and not shape.file:
+        _fail(f"{key}.shape.file", shape.file, f"a {shape.kind} shape needs a file path")
+    if not shape.scale > 0 or not shape.voxel_size > 0:
+        _fail(f"{key}.shape.scale", shape.scale, "scale and voxel_size must be > 0")
+    if mat.kind not in MATERIALS:
+        _fail(f"{key}.material.kind", mat.kind, f"one of {', '.join(material_names())}")
+    if not mat.youngs_modulus > 0:
+        _fail(f"{key}.material.youngs_modulus", mat.youngs_modulus, "must be > 0")
+    if not -1 < mat.poisson_ratio < 0.5:
+        _fail(f"{key}.material.poisson_ratio", mat.poisson_ratio, "must be in (-1, 0.5)")
+    if not mat.density > 0:
+        _fail(f"{key}.material.density", mat.density, "must be > 0")
+    _check_vec(f"{key}.center", body.center)
+    _check_vec(f"{key}.velocity", body.velocity)
+    _check_vec(f"{key}.rotation", body.rotation)
+    root = round(body.particles_per_cell ** (1 / 3))
+    if body.particles_per_cell < 1 or root ** 3 != body.particles_per_cell:
+        _fail(f"{key}.particles_per_cell", body.particles_per_cell, "a cube number: 1, 8, 27 or 64")
+    if body.muscles is not None:
+        m = body.muscles
+        if len(m.groups) != 3 or min(m.groups) < 1:
+            _fail(f"{key}.muscles.groups", list(m.groups), "three positive integers")
+        _check_vec(f"{key}.muscles.fiber", m.fiber)
+        if math.hypot(*m.fiber) == 0:
+            _fail(f"{key}.muscles.fiber", list(m.fiber), "a non-zero direction")
+        if m.stiffness_ratio < 0:
+            _fail(f"{key}.muscles.stiffness_ratio", m.stiffness_ratio, "must be >= 0")

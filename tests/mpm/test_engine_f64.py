@@ -1,0 +1,274 @@
+"""Exactness and gradients of the MPM engine in float64.
+
+All differentiable checks share one simulator layout (one compile of the backward kernels,
+about two minutes cold, a second once Taichi's offline cache is warm).
+"""
+import numpy as np
+import pytest
+
+from codesign_mpm import BodySpec, MaterialSpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec, build_particles
+from codesign_mpm.engine import SimulationError, Simulator
+
+T = 6  # frames per differentiable rollout
+MAX_FRAMES = 12
+
+
+def robot_scene(**material) -> Scene:
+    """A 4-muscle box robot resting on frictional ground: gradients go through contact."""
+    return Scene(
+        size=[1.0, 0.5, 0.5], dx=1 / 32, dtype="float64",
+        terrain=TerrainSpec(kind="flat", height=0.1, friction=0.5),
+        bodies=[BodySpec(name="robot", robot=True, shape=ShapeSpec(size=[0.16, 0.08, 0.08]),
+                         center=[0.5, 0.0, 0.25], rest_on_terrain=True,
+                         material=MaterialSpec(**material), muscles=MuscleSpec(groups=[2, 2, 1]))])
+
+
+@pytest.fixture(scope="module")
+def sim():
+    scene = robot_scene()
+    s = Simulator(scene, build_particles(scene), requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=64)
+    assert T * s.timestep.substeps <= s.segment, "the plain (one-segment) rollout must fit"
+    yield s
+    s.close()
+
+
+@pytest.fixture(scope="module")
+def weights():
+    rng = np.random.default_rng(7)
+    return {"com_x": rng.normal(size=(T + 1, 3)), "com_v": rng.normal(size=(T + 1, 3))}
+
+
+@pytest.fixture(scope="module")
+def actions():
+    return np.random.default_rng(3).uniform(-0.3, 0.3, size=(T, 4))
+
+
+def loss(sim, actions, weights, wx, checkpoint_every=None) -> float:
+    out = sim.rollout(actions, checkpoint_every=checkpoint_every)
+    return float((weights["com_x"] * out.com_x).sum() + (weights["com_v"] * out.com_v).sum()
+                 + (wx * out.x).sum())
+
+
+def gradients(sim, actions, weights, wx, checkpoint_every=None):
+    loss(sim, actions, weights, wx, checkpoint_every)
+    return sim.backward(com_x=weights["com_x"], com_v=weights["com_v"], x=wx)
+
+
+def central_difference(f, eps):
+    return (f(eps) - f(-eps)) / (2 * eps)
+
+
+def test_gradients_match_finite_differences_through_contact_and_checkpoints(sim, actions, weights):
+    p = sim.particles
+    n = p.n
+    wx = np.random.default_rng(11).normal(size=(n, 3)) / n
+    base = {k: getattr(p, k).copy() for k in ("volume", "youngs_modulus", "muscle", "v")}
+    g = gradients(sim, actions, weights, wx, checkpoint_every=5)
+    contact = int(np.argmin(p.x[:, 1]))  # a particle in the bottom layer, touching the ground
+
+    def restore():
+        sim.set_design(volume=base["volume"], youngs_modulus=base["youngs_modulus"], muscle=base["muscle"])
+        sim.set_initial_state(v=base["v"])
+
+    def perturbed(kind, index, eps):
+        restore()
+        if kind == "action":
+            a = actions.copy()
+            a[index] += eps
+            return loss(sim, a, weights, wx, 5)
+        if kind == "v0":
+            v = base["v"].copy()
+            v[index] += eps
+            sim.set_initial_state(v=v)
+        else:
+            field = {"stiffness": "youngs_modulus", "muscle": "muscle", "volume": "volume"}[kind]
+            value = base[field].copy()
+            value[index] += eps
+            sim.set_design(**{field: value})
+        return loss(sim, actions, weights, wx, 5)
+
+    cases = [
+        ("action", (1, 0), 1e-6, g.actions[1, 0]),
+        ("action", (4, 3), 1e-6, g.actions[4, 3]),
+        ("v0", (contact, 0), 1e-6, g.v0[contact, 0]),
+        ("v0", (5, 1), 1e-6, g.v0[5, 1]),
+        ("stiffness", contact, 1e-2, g.youngs_modulus[contact]),
+        ("muscle", (contact, 2), 1e-6, g.muscle[contact, 2]),
+        ("volume", 9, base["volume"][9] * 1e-5, g.volume[9]),
+    ]
+    try:
+        for kind, index, eps, analytic in cases:
+            numeric = central_difference(lambda e: perturbed(kind, index, e), eps)
+            assert analytic == pytest.approx(numeric, rel=1e-4, abs=1e-9 * max(1.0, abs(numeric))), (kind, index)
+    finally:
+        restore()
+
+
+def test_checkpointed_gradients_equal_plain_ones(sim, actions, weights):
+    wx = np.zeros((sim.n, 3))
+    plain = gradients(sim, actions, weights, wx)  # one segment: every substep stored
+    assert sim._rollout_segment >= T * sim.timestep.substeps
+    for every in (1, 5, 13):
+        ckpt = gradients(sim, actions, weights, wx, checkpoint_every=every)
+        for name in ("actions", "youngs_modulus", "muscle", "volume", "x0", "v0"):
+            np.testing.assert_allclose(getattr(ckpt, name), getattr(plain, name), rtol=1e-9,
+                                       atol=1e-12 * np.abs(getattr(plain, name)).max(), err_msg=name)
+
+
+def test_torch_bridge_passes_gradcheck(sim):
+    torch = pytest.importorskip("torch")
+    from codesign_mpm.bridge import simulate
+
+    E0 = torch.tensor(sim.particles.youngs_modulus.copy())
+
+    def f(actions, stiffness_scale):
+        com_x, com_v, x, v = simulate(sim, actions, youngs_modulus=E0 * stiffness_scale, checkpoint_every=7)
+        return com_x[-1, 0] + 0.3 * com_v[2:, 1].sum() + x[:, 1].mean()
+
+    actions = torch.tensor(np.random.default_rng(0).uniform(-0.3, 0.3, (3, 4)), requires_grad=True)
+    scale = torch.ones(sim.n, dtype=torch.float64, requires_grad=True)
+    try:
+        assert torch.autograd.gradcheck(f, (actions, scale), eps=1e-6, atol=1e-7, rtol=1e-4, fast_mode=True)
+    finally:
+        sim.set_design(youngs_modulus=E0.numpy())
+
+
+# --------------------------------------------------------------------------- hard cases, backward
+def _finite_rollout(sim, actions, **state):
+    if state:
+        sim.set_initial_state(**state)
+    out = sim.rollout(actions)
+    g = sim.backward(com_x=np.ones((len(actions) + 1, 3)), x=np.ones((sim.n, 3)) / sim.n)
+    assert np.isfinite(out.x).all() and np.isfinite(out.v).all()
+    for name in ("actions", "youngs_modulus", "muscle", "volume", "x0", "v0"):
+        assert np.isfinite(getattr(g, name)).all(), name
+    return out, g
+
+
+def test_stiff_body_adapts_time_step_and_stays_finite(sim):
+    soft = sim.timestep
+    try:
+        sim.reset(build_particles(robot_scene(youngs_modulus=1e6)))
+        # the wave speed grows about 10x, so the CFL step shrinks about 10x
+        assert sim.timestep.substeps >= 8 * soft.substeps
+        assert sim.timestep.dt <= sim.timestep.stable_dt
+        _finite_rollout(sim, np.full((4, 4), 0.3))
+    finally:
+        sim.reset(build_particles(robot_scene()))
+
+
+def test_fast_impact_stays_finite_and_above_ground(sim):
+    scene = robot_scene()
+    scene.bodies[0].rest_on_terrain = False
+    scene.bodies[0].center = [0.5, 0.25, 0.25]
+    scene.bodies[0].velocity = [0.0, -8.0, 0.0]
+    try:
+        sim.reset(build_particles(scene))
+        out, _ = _finite_rollout(sim, np.zeros((MAX_FRAMES, 4)))
+        assert out.com_v[0, 1] == pytest.approx(-8.0)
+        assert out.com_v[-1, 1] > -1.0  # the impact was absorbed
+        assert out.x[:, 1].min() > 0.1 - scene.dx  # nothing tunnelled into the terrain
+    finally:
+        sim.reset(build_particles(robot_scene()))
+
+
+def test_full_actuation_long_backward_pass_stays_finite(sim):
+    signs = np.where(np.arange(MAX_FRAMES)[:, None] % 4 < 2, 1.0, -1.0) * np.array([1, -1, -1, 1])
+    out, g = _finite_rollout(sim, 0.3 * signs)
+    assert np.abs(g.actions).max() > 0
+
+
+def test_nearly_inverted_elements_recover(sim):
+    F = np.tile(np.eye(3), (sim.n, 1, 1))
+    F[::7] = np.diag([0.1, 0.1, 0.1])  # J = 1e-3
+    F[3] = np.diag([-0.05, 1.0, 1.0])  # inverted
+    try:
+        out, _ = _finite_rollout(sim, np.zeros((T, 4)), F=F)
+    finally:
+        sim.set_initial_state(F=np.tile(np.eye(3), (sim.n, 1, 1)))
+
+
+def test_particles_with_tiny_mass_stay_finite(sim):
+    volume = sim.particles.volume.copy()
+    tiny = volume.copy()
+    tiny[::2] *= 1e-9
+    try:
+        sim.set_design(volume=tiny)
+        _finite_rollout(sim, np.full((T, 4), 0.3))
+    finally:
+        sim.set_design(volume=volume)
+
+
+def test_rollout_rejects_a_longer_checkpoint_interval_than_allocated(sim):
+    with pytest.raises(ValueError, match="checkpoint_every must be in"):
+        sim.rollout(np.zeros((T, 4)), checkpoint_every=sim.segment + 1)
+
+
+# --------------------------------------------------------------------------- exact forward answers
+def floating_scene(gravity) -> Scene:
+    return Scene(size=[1.0, 1.0, 1.0], dx=1 / 32, dtype="float64", gravity=gravity,
+                 terrain=TerrainSpec(kind="none"),
+                 bodies=[BodySpec(shape=ShapeSpec(kind="ellipsoid", size=[0.2, 0.14, 0.1]),
+                                  center=[0.5, 0.6, 0.5], velocity=[0.3, 0.1, -0.2])])
+
+
+@pytest.mark.parametrize("region", ["bbox", "full"])
+def test_free_fall_matches_the_exact_discrete_trajectory(region):
+    scene = floating_scene([0.0, -3.8, 0.0])
+    scene.grid_region = region
+    sim = Simulator(scene, build_particles(scene))
+    try:
+        p = sim.particles
+        m = p.volume * p.density
+        x0 = (m[:, None] * p.x).sum(0) / m.sum()
+        frames = 10
+        sim.step(frames=frames)
+        x, v, C, F = sim.particles_state()
+        n, dt = frames * sim.timestep.substeps, sim.timestep.dt
+        g, v0 = np.array(scene.gravity), np.array(scene.bodies[0].velocity)
+        # v_k = v0 + k dt g and x_k = x_{k-1} + dt v_k (symplectic Euler on every particle)
+        np.testing.assert_allclose(v, np.tile(v0 + n * dt * g, (sim.n, 1)), rtol=0, atol=1e-11)
+        com = (m[:, None] * x).sum(0) / m.sum()
+        np.testing.assert_allclose(com, x0 + n * dt * v0 + dt * dt * g * n * (n + 1) / 2, rtol=0, atol=1e-11)
+        np.testing.assert_allclose(F, np.tile(np.eye(3), (sim.n, 1, 1)), atol=1e-11)
+    finally:
+        sim.close()
+
+
+def angular_momentum(x, v, C, m, dx):
+    """Particle + affine (APIC) angular momentum, sum m (x cross v + dx^2/4 eps:C^T)."""
+    affine = np.stack([C[:, 2, 1] - C[:, 1, 2], C[:, 0, 2] - C[:, 2, 0], C[:, 1, 0] - C[:, 0, 1]], axis=1)
+    return (m[:, None] * (np.cross(x, v) + dx * dx / 4 * affine)).sum(0)
+
+
+def test_momentum_is_conserved_without_gravity_and_walls():
+    scene = floating_scene([0.0, 0.0, 0.0])
+    sim = Simulator(scene, build_particles(scene))
+    try:
+        p = sim.particles
+        m = p.volume * p.density
+        spin = np.cross([1.0, 2.0, 0.5], p.x - p.x.mean(0))  # rigid rotation + translation
+        sim.set_initial_state(v=p.v + spin)
+        x, v, C, _ = sim.particles_state()
+        P0, L0 = (m[:, None] * v).sum(0), angular_momentum(x, v, C, m, scene.dx)
+        sim.step(frames=15)
+        x, v, C, F = sim.particles_state()
+        assert np.abs(np.linalg.det(F) - 1).max() > 1e-4, "the body should deform, or the test is trivial"
+        np.testing.assert_allclose((m[:, None] * v).sum(0), P0, rtol=0, atol=1e-10 * np.abs(P0).max())  # round-off over ~100 substeps
+        np.testing.assert_allclose(angular_momentum(x, v, C, m, scene.dx), L0, rtol=0,
+                                   atol=1e-10 * np.abs(L0).max())
+    finally:
+        sim.close()
+
+
+def test_non_finite_state_is_reported_with_particle_and_material():
+    scene = floating_scene([0.0, -3.8, 0.0])
+    sim = Simulator(scene, build_particles(scene))
+    try:
+        x = sim.particles.x.copy()
+        x[17] = np.nan
+        sim.set_initial_state(x=x)
+        with pytest.raises(SimulationError, match=r"particle 17 of body 'body' \(neo_hookean\)"):
+            sim.step()
+    finally:
+        sim.close()
