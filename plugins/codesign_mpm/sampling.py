@@ -1,7 +1,8 @@
 """Turn body specs into particles: lattice sampling inside shapes, muscles, materials.
 
-Particle volume is the lattice cell actually used (spacing^3), so mass and stiffness do not
-change with the sampling density (the old code used dx^3 for every particle).
+Each particle stands for the shape's volume divided by the number of particles actually
+seeded, so mass and stiffness do not change with the sampling density or with how the
+lattice happens to fit the shape (the old code used dx^3 for every particle).
 """
 from __future__ import annotations
 
@@ -58,23 +59,23 @@ def _load_points(path: Path) -> np.ndarray:
 
 
 def _shape_points(key: str, shape: ShapeSpec, spacing: float) -> tuple[np.ndarray, float]:
-    """Particle offsets from the body centre and the volume each one stands for."""
-    vol = spacing ** 3
+    """Particle offsets from the body centre and the shape's total volume."""
     if shape.kind in ("box", "ellipsoid"):
-        half = np.asarray(shape.size, dtype=float) / 2
-        p = lattice(-half, half, spacing)
-        if shape.kind == "ellipsoid":
-            p = p[((p / half) ** 2).sum(1) <= 1]
-        return p, vol
+        size = np.asarray(shape.size, dtype=float)
+        p = lattice(-size / 2, size / 2, spacing)
+        if shape.kind == "box":
+            return p, float(np.prod(size))
+        return p[((2 * p / size) ** 2).sum(1) <= 1], float(np.pi / 6 * np.prod(size))
     if shape.kind == "sphere":
         r = shape.radius
         p = lattice(np.full(3, -r), np.full(3, r), spacing)
-        return p[(p ** 2).sum(1) <= r * r], vol
+        return p[(p ** 2).sum(1) <= r * r], 4 / 3 * np.pi * r ** 3
     if shape.kind == "capsule":
         r, h = shape.radius, shape.length / 2
         p = lattice(np.array([-h - r, -r, -r]), np.array([h + r, r, r]), spacing)
         axial = np.clip(p[:, 0], -h, h)
-        return p[(p[:, 0] - axial) ** 2 + p[:, 1] ** 2 + p[:, 2] ** 2 <= r * r], vol
+        inside = (p[:, 0] - axial) ** 2 + p[:, 1] ** 2 + p[:, 2] ** 2 <= r * r
+        return p[inside], np.pi * r * r * shape.length + 4 / 3 * np.pi * r ** 3
     path = Path(shape.file or "")
     if not path.is_file():
         raise SceneError(f"{key}.shape.file = {shape.file!r} is invalid: no such file")
@@ -85,7 +86,7 @@ def _shape_points(key: str, shape: ShapeSpec, spacing: float) -> tuple[np.ndarra
         size = np.asarray(occ.shape) * shape.voxel_size
         p = lattice(-size / 2, size / 2, spacing)
         idx = np.clip(((p + size / 2) / shape.voxel_size).astype(int), 0, np.asarray(occ.shape) - 1)
-        return p[occ[idx[:, 0], idx[:, 1], idx[:, 2]]], vol
+        return p[occ[idx[:, 0], idx[:, 1], idx[:, 2]]], float(occ.sum() * shape.voxel_size ** 3)
     if shape.kind == "mesh":
         import trimesh
 
@@ -95,14 +96,15 @@ def _shape_points(key: str, shape: ShapeSpec, spacing: float) -> tuple[np.ndarra
         mesh.apply_scale(shape.scale / (hi - lo).max())
         lo, hi = mesh.bounds
         p = lattice(lo, hi, spacing)
-        return p[mesh.contains(p)], vol
+        inside = mesh.contains(p)
+        return p[inside], float(mesh.volume) if mesh.is_watertight else inside.sum() * spacing ** 3
     # points: used as given; each stands for the volume of the lattice cells it occupies
     pts = _load_points(path)
     lo, hi = pts.min(0), pts.max(0)
     pts = (pts - (lo + hi) / 2) * (shape.scale / (hi - lo).max())
     h = (np.prod(np.maximum(hi - lo, 1e-12)) * (shape.scale / (hi - lo).max()) ** 3 / len(pts)) ** (1 / 3)
     cells = np.unique(np.floor(pts / h).astype(np.int64), axis=0)
-    return pts, len(cells) * h ** 3 / len(pts)
+    return pts, len(cells) * h ** 3
 
 
 def rotation_matrix(degrees: list[float]) -> np.ndarray:
@@ -144,7 +146,7 @@ def build_particles(scene: Scene) -> Particles:
 def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarray]:
     key = f"bodies[{i}]"
     per_axis = round(body.particles_per_cell ** (1 / 3))
-    offsets, vol = _shape_points(key, body.shape, scene.dx / per_axis)
+    offsets, total_volume = _shape_points(key, body.shape, scene.dx / per_axis)
     if len(offsets) == 0:
         raise SceneError(f"{key}.shape = {body.shape!r} is invalid: it holds no particle at "
                          f"dx={scene.dx}; make it larger or the grid finer")
@@ -166,6 +168,7 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
                          f"{x.min(0).round(4).tolist()} to {x.max(0).round(4).tolist()}, outside the "
                          f"domain interior [{margin:.4g}, size - {margin:.4g}] for size {list(scene.size)}")
     n = len(x)
+    vol = total_volume / n
     mat = body.material
     if body.muscles is not None:
         muscle = _muscles(local, list(body.muscles.groups))

@@ -1,0 +1,154 @@
+"""Physical behaviour of the engine in float32 (the default precision), forward only."""
+import math
+
+import numpy as np
+import pytest
+
+from codesign_mpm import BodySpec, MaterialSpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec, build_particles
+from codesign_mpm.engine import SimulationError, Simulator
+
+DX = 1 / 32
+
+
+def com(sim) -> np.ndarray:
+    p = sim.particles
+    m = p.volume * p.density
+    return (m[:, None] * sim.particles_state()[0]).sum(0) / m.sum()
+
+
+def incline_scene(theta_deg: float, friction: float) -> Scene:
+    """A stiff block lying flush on a terrain incline that rises along +x."""
+    theta, h0, xc, half = math.radians(theta_deg), 0.1, 0.6, 0.04
+    normal = np.array([-math.sin(theta), math.cos(theta), 0.0])
+    center = np.array([xc, h0 + math.tan(theta) * xc, 0.25]) + normal * (half + DX / 8)
+    return Scene(size=[1.0, 1.0, 0.5], dx=DX,
+                 terrain=TerrainSpec(kind="incline", height=h0, slope_deg=theta_deg, friction=friction),
+                 bodies=[BodySpec(shape=ShapeSpec(size=[0.16, 0.08, 0.08]), center=center.tolist(),
+                                  rotation=[0.0, 0.0, theta_deg], material=MaterialSpec(youngs_modulus=1e5))])
+
+
+@pytest.mark.parametrize("theta_deg", [20.0, 35.0])
+def test_block_on_incline_slides_iff_tan_theta_exceeds_mu(theta_deg):
+    mu, g = 0.5, 3.8
+    scene = incline_scene(theta_deg, mu)
+    sim = Simulator(scene, build_particles(scene))
+    try:
+        theta = math.radians(theta_deg)
+        downhill = np.array([-math.cos(theta), -math.sin(theta), 0.0])
+        start = com(sim)
+        travel = []
+        for _ in range(60):
+            sim.step()
+            travel.append((com(sim) - start) @ downhill)
+        travel = np.array(travel)
+        if math.tan(theta) <= mu:
+            # after settling into contact (< a quarter cell), the block does not move at all
+            assert abs(travel[0]) < DX / 4
+            assert abs(travel[-1] - travel[19]) < 1e-3 * DX
+        else:
+            t = np.arange(1, 61) * scene.frame_dt
+            accel = 2 * np.polyfit(t[20:], travel[20:], 2)[0]
+            expected = g * (math.sin(theta) - mu * math.cos(theta))
+            assert accel == pytest.approx(expected, rel=0.08)
+    finally:
+        sim.close()
+
+
+def test_elastic_ball_bounces_and_stays_in_one_piece():
+    scene = Scene(size=[1.0, 1.0, 0.5], dx=DX, terrain=TerrainSpec(height=0.1, friction=0.5),
+                  bodies=[BodySpec(shape=ShapeSpec(kind="sphere", radius=0.07), center=[0.5, 0.45, 0.25])])
+    sim = Simulator(scene, build_particles(scene))
+    try:
+        p = sim.particles
+        m = p.volume * p.density
+        vy, extent = [], []
+        for _ in range(100):
+            sim.step()
+            x, v, _, F = sim.particles_state()
+            vy.append((m * v[:, 1]).sum() / m.sum())
+            extent.append((x.max(0) - x.min(0)).max())
+        vy = np.array(vy)
+        impact = int(np.argmin(vy))
+        assert vy[impact] < -1.0
+        assert vy[impact:].max() > 0.5 * -vy[impact], "it should rebound with at least half the impact speed"
+        assert max(extent) < 1.15 * 0.14, "it should stay one piece (diameter 0.14)"
+        J = np.linalg.det(F)
+        assert 0.9 < J.min() and J.max() < 1.1
+    finally:
+        sim.close()
+
+
+def robot_scene(**material) -> Scene:
+    return Scene(size=[1.0, 0.5, 0.5], dx=DX, terrain=TerrainSpec(height=0.1, friction=0.5),
+                 bodies=[BodySpec(robot=True, shape=ShapeSpec(size=[0.16, 0.08, 0.08]), center=[0.5, 0.0, 0.25],
+                                  rest_on_terrain=True, material=MaterialSpec(**material),
+                                  muscles=MuscleSpec(groups=[2, 2, 1]))])
+
+
+def gait(frame: int, amplitude: float = 0.3, hz: float = 3.0) -> np.ndarray:
+    phase = 2 * math.pi * hz * frame * 8e-3
+    return amplitude * np.array([math.sin(phase), math.cos(phase), -math.sin(phase), -math.cos(phase)])
+
+
+@pytest.fixture(scope="module")
+def robot():
+    scene = robot_scene()
+    sim = Simulator(scene, build_particles(scene))
+    yield sim
+    sim.close()
+
+
+def mean_speed_after_settling(sim, action) -> float:
+    """Mean particle speed over 40 frames, after 100 frames of settling onto the ground."""
+    sim.reset()
+    sim.step(np.zeros(4), frames=100)
+    speeds = []
+    for f in range(40):
+        sim.step(action(f))
+        speeds.append(np.linalg.norm(sim.particles_state()[1], axis=1).mean())
+    return float(np.mean(speeds))
+
+
+def test_muscles_move_the_robot_only_when_actuated(robot):
+    still = mean_speed_after_settling(robot, lambda f: np.zeros(4))
+    moving = mean_speed_after_settling(robot, gait)
+    assert still < 0.01  # the landing has (nearly) rung down: APIC damps little
+    assert moving > 0.04
+    assert moving > 10 * still
+
+
+def test_full_actuation_over_a_long_horizon_stays_finite(robot):
+    robot.reset()
+    for f in range(300):
+        robot.step(np.sign(gait(f)) * 0.3)  # square wave at the action bound
+    x, v, _, F = robot.particles_state()
+    J = np.linalg.det(F)
+    assert np.isfinite(x).all() and 0.3 < J.min() and J.max() < 3.0
+    assert x[:, 1].min() > 0.1 - DX
+
+
+def test_time_step_above_the_stable_one_blows_up_with_a_clear_error():
+    scene = robot_scene(youngs_modulus=1e6)
+    scene.dt, scene.allow_unstable_dt = 8e-3 / 2, True  # about 15x the CFL bound
+    sim = Simulator(scene, build_particles(scene))
+    try:
+        with pytest.raises(SimulationError, match=r"substep \d+ \(frame \d+\)"):
+            sim.step(np.zeros(4), frames=50)
+    finally:
+        sim.close()
+
+
+@pytest.mark.parametrize("model", ["corotated", "stvk"])
+def test_other_elastic_models_hold_a_resting_body(model):
+    scene = robot_scene(kind=model)
+    scene.bodies[0].muscles = None
+    sim = Simulator(scene, build_particles(scene))
+    try:
+        assert sim.layout.models == (1 if model == "corotated" else 2,)
+        sim.step(frames=60)
+        x, v, _, F = sim.particles_state()
+        # it neither collapses nor swells: height within 5%, volume within 2%
+        assert x[:, 1].max() - x[:, 1].min() == pytest.approx(0.08 - DX / 2, rel=0.05)
+        assert abs(np.linalg.det(F).mean() - 1) < 0.02
+    finally:
+        sim.close()

@@ -1,0 +1,107 @@
+"""Bad scenes are refused before simulation, with the key, the value and what is allowed."""
+import math
+
+import numpy as np
+import pytest
+
+from codesign_mpm import BodySpec, MaterialSpec, Scene, SceneError, ShapeSpec, TerrainSpec, build_particles
+from codesign_mpm.engine import time_step
+from codesign_mpm.scene import validate_scene
+
+
+def scene(**body) -> Scene:
+    return Scene(dx=1 / 32, bodies=[BodySpec(center=[0.5, 0.4, 0.5], **body)])
+
+
+@pytest.mark.parametrize("body, pattern", [
+    (dict(material=MaterialSpec(kind="rubberish")), r"bodies\[0\]\.material\.kind = 'rubberish'.*neo_hookean"),
+    (dict(material=MaterialSpec(youngs_modulus=0.0)), r"bodies\[0\]\.material\.youngs_modulus = 0\.0.*> 0"),
+    (dict(material=MaterialSpec(youngs_modulus=-5.0)), r"youngs_modulus = -5\.0"),
+    (dict(material=MaterialSpec(density=0.0)), r"bodies\[0\]\.material\.density = 0\.0.*> 0"),
+    (dict(material=MaterialSpec(poisson_ratio=0.5)), r"poisson_ratio = 0\.5.*\(-1, 0\.5\)"),
+    (dict(shape=ShapeSpec(kind="blob")), r"shape\.kind = 'blob'.*box, sphere"),
+    (dict(particles_per_cell=6), r"particles_per_cell = 6.*cube number"),
+])
+def test_invalid_bodies_name_key_value_and_allowed(body, pattern):
+    with pytest.raises(SceneError, match=pattern):
+        validate_scene(scene(**body))
+
+
+def test_body_outside_the_domain_is_refused():
+    s = scene()
+    s.bodies[0].center = [0.98, 0.4, 0.5]
+    with pytest.raises(SceneError, match=r"bodies\[0\]\.center = \[0\.98, 0\.4, 0\.5\].*outside the domain"):
+        build_particles(s)
+
+
+def test_time_step_above_the_stable_one_is_refused_unless_overridden():
+    s = scene()
+    particles = build_particles(s)
+    stable = time_step(s, particles).stable_dt
+    s.dt = 2 * stable
+    with pytest.raises(SceneError, match=r"dt = .* the CFL bound for this scene is .*allow_unstable_dt"):
+        time_step(s, particles)
+    s.allow_unstable_dt = True
+    assert time_step(s, particles).dt == pytest.approx(s.frame_dt / math.ceil(s.frame_dt / s.dt))
+
+
+def test_time_step_divides_the_frame_exactly_and_respects_cfl():
+    s = scene(velocity=[0.0, -2.0, 0.0])
+    ts = time_step(s, build_particles(s))
+    assert ts.substeps * ts.dt == pytest.approx(s.frame_dt, rel=1e-12)
+    assert ts.dt <= ts.stable_dt
+    # the initial speed enters the bound
+    assert ts.stable_dt < time_step(scene(), build_particles(scene())).stable_dt
+
+
+def test_particle_volume_follows_sampling_density():
+    coarse = build_particles(scene(particles_per_cell=1))
+    fine = build_particles(scene(particles_per_cell=27))
+    # same body (a 0.1 cube), same mass whatever the sampling
+    assert coarse.volume.sum() == pytest.approx(1e-3, rel=1e-12)
+    assert fine.volume.sum() == pytest.approx(1e-3, rel=1e-12)
+    assert fine.volume[0] == pytest.approx(1e-3 / fine.n)
+    assert coarse.n < fine.n / 20
+
+
+def test_bad_scene_values():
+    with pytest.raises(SceneError, match=r"cfl = 1\.5"):
+        validate_scene(Scene(cfl=1.5, bodies=[BodySpec()]))
+    with pytest.raises(SceneError, match=r"terrain\.kind = 'lava'"):
+        validate_scene(Scene(terrain=TerrainSpec(kind="lava"), bodies=[BodySpec()]))
+    with pytest.raises(SceneError, match=r"bodies = \[\].*at least one body"):
+        validate_scene(Scene())
+    with pytest.raises(SceneError, match=r"dtype = 'float16'"):
+        validate_scene(Scene(dtype="float16", bodies=[BodySpec()]))
+
+
+def test_shapes_sample_their_volume():
+    dx = 1 / 32
+    for shape, volume in [(ShapeSpec(kind="sphere", radius=0.1), 4 / 3 * np.pi * 0.1 ** 3),
+                          (ShapeSpec(kind="ellipsoid", size=[0.2, 0.1, 0.16]), np.pi / 6 * 0.2 * 0.1 * 0.16),
+                          (ShapeSpec(kind="capsule", radius=0.05, length=0.1),
+                           np.pi * 0.05 ** 2 * 0.1 + 4 / 3 * np.pi * 0.05 ** 3)]:
+        p = build_particles(Scene(dx=dx, bodies=[BodySpec(shape=shape, center=[0.5, 0.5, 0.5], particles_per_cell=27)]))
+        assert p.volume.sum() == pytest.approx(volume, rel=1e-12), shape.kind
+        lattice_volume = p.n * (dx / 3) ** 3  # and the lattice really fills the shape
+        assert lattice_volume == pytest.approx(volume, rel=0.06), shape.kind
+
+
+def test_voxel_and_point_cloud_shapes(tmp_path):
+    occ = np.zeros((4, 3, 2), dtype=bool)
+    occ[:, :2] = True
+    np.save(tmp_path / "robot.npy", occ)
+    s = Scene(dx=1 / 32, bodies=[BodySpec(shape=ShapeSpec(kind="voxels", file=str(tmp_path / "robot.npy"),
+                                                           voxel_size=0.05), center=[0.5, 0.5, 0.5])])
+    p = build_particles(s)
+    assert p.volume.sum() == pytest.approx(occ.sum() * 0.05 ** 3, rel=1e-12)
+    assert p.n * (1 / 64) ** 3 == pytest.approx(occ.sum() * 0.05 ** 3, rel=0.15)
+    grid = np.stack(np.meshgrid(*[np.linspace(0, 1, 11)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    np.save(tmp_path / "cloud.npy", grid)
+    s.bodies[0].shape = ShapeSpec(kind="points", file=str(tmp_path / "cloud.npy"), scale=0.2)
+    p = build_particles(s)
+    assert p.n == len(grid)
+    assert p.volume.sum() == pytest.approx(0.2 ** 3, rel=0.35)
+    s.bodies[0].shape.file = str(tmp_path / "missing.npy")
+    with pytest.raises(SceneError, match=r"shape\.file = .*missing\.npy.*no such file"):
+        build_particles(s)
