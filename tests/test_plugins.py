@@ -31,8 +31,13 @@ def test_disable_by_name_argument():
 
 
 def test_disable_by_environment_variable(monkeypatch):
+    def loaded() -> set[str]:
+        return {entry.plugin for entry in plugins.get_registry().entries()}
+
+    everything = loaded()
     monkeypatch.setenv(plugins.DISABLE_ENV, "toy_plugin, basics")
-    assert plugins.get_registry().entries() == []
+    plugins.reset()
+    assert everything - loaded() == {"toy_plugin", "basics"}
 
 
 def test_autoload_off_skips_entry_points_but_keeps_explicit_modules(monkeypatch):

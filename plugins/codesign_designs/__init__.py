@@ -1,0 +1,1 @@
+"""First-party design representations (SoftZoo appendix): how trainable parameters become a robot body."""

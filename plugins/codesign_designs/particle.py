@@ -1,0 +1,78 @@
+"""The particle-based representation (PBR) of the SoftZoo appendix: free parameters per base particle."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import torch
+
+from codesign.errors import RecipeError
+from codesign.interfaces import DesignFields, DesignSpace, Representation
+from codesign_designs.config import ParticleConfig
+
+
+def near_cubic_grid(k: int) -> tuple[int, int, int]:
+    """Factor ``k`` into (gx, gy, gz), as balanced as possible, largest along x: 4 -> (2, 2, 1)."""
+    triples = [(a, b, k // (a * b)) for a, b in itertools.product(range(1, k + 1), repeat=2)
+               if k % (a * b) == 0]
+    triples = [t for t in triples if t[0] >= t[1] >= t[2]]
+    return min(triples, key=lambda t: (t[0] / t[2], t[0]))
+
+
+def grid_cells(points: np.ndarray, groups: tuple[int, int, int]) -> np.ndarray:
+    """Index (N,) of the block each point falls in when its bounding box is cut into ``groups``."""
+    lo, hi = points.min(0), points.max(0)
+    g = np.asarray(groups)
+    cell = np.minimum(((points - lo) / np.maximum(hi - lo, 1e-12) * g).astype(int), g - 1)
+    return (cell[:, 0] * g[1] + cell[:, 1]) * g[2] + cell[:, 2]
+
+
+class ParticleRepresentation(Representation):
+    """occupancy = sigmoid(g_p); stiffness = E0 (lo + (hi - lo) sigmoid(s_p)); muscle = softmax(r_p).
+
+    Every base particle has its own logits, so this is the most expressive and least smooth
+    representation; the fibre direction is fixed. All three logit tensors require grad.
+    """
+
+    def __init__(self, config: ParticleConfig) -> None:
+        if not config.min_stiffness_ratio < config.max_stiffness_ratio:
+            raise RecipeError(
+                f"invalid recipe: representation.min_stiffness_ratio: {config.min_stiffness_ratio!r} must be "
+                f"below max_stiffness_ratio ({config.max_stiffness_ratio!r})")
+        if len(config.fiber) != 3 or not np.linalg.norm(config.fiber) > 0:
+            raise RecipeError(f"invalid recipe: representation.fiber: {config.fiber!r} is not a non-zero 3-vector")
+        self.config = config
+        self.geometry: torch.Tensor | None = None
+        self.stiffness: torch.Tensor | None = None
+        self.muscle: torch.Tensor | None = None
+
+    def setup(self, space: DesignSpace, rng: np.random.Generator) -> None:
+        cfg = self.config
+        n, k = len(space.points), space.n_actuators
+        if cfg.muscle_init == "grid":
+            muscle = np.zeros((n, k))
+            muscle[np.arange(n), grid_cells(space.points, near_cubic_grid(k))] = cfg.muscle_sharpness
+        else:
+            muscle = rng.normal(0.0, 1.0, (n, k))
+        dtype = torch.get_default_dtype()
+        self.geometry = torch.full((n,), cfg.init_occupancy_logit, dtype=dtype, requires_grad=True)
+        self.stiffness = torch.zeros(n, dtype=dtype, requires_grad=True)
+        self.muscle = torch.tensor(muscle, dtype=dtype, requires_grad=True)
+        fiber = torch.tensor(cfg.fiber, dtype=dtype)
+        self._fiber = (fiber / fiber.norm()).expand(n, 3)
+        self._default_stiffness = space.default_stiffness
+
+    def parameters(self) -> list[torch.Tensor]:
+        return [self.geometry, self.stiffness, self.muscle]
+
+    def __call__(self) -> DesignFields:
+        if self.geometry is None:
+            raise RuntimeError("ParticleRepresentation.setup() must be called before use")
+        lo, hi = self.config.min_stiffness_ratio, self.config.max_stiffness_ratio
+        return DesignFields(
+            occupancy=torch.sigmoid(self.geometry),
+            stiffness=self._default_stiffness * (lo + (hi - lo) * torch.sigmoid(self.stiffness)),
+            muscle=torch.softmax(self.muscle, dim=1),
+            fiber=self._fiber,
+        )

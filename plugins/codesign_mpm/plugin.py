@@ -1,0 +1,69 @@
+"""Registers the MPM environments and the `simulate` command; imports nothing heavy.
+
+Each entry of `codesign_mpm.config.PRESETS` becomes an environment of the same name.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Optional
+
+from codesign.hookspecs import hookimpl
+from codesign.registry import PluginRegistrar
+from codesign_mpm.config import PRESETS, LocomotionConfig
+
+if TYPE_CHECKING:
+    import typer
+
+    from codesign_mpm.env import LocomotionEnv
+
+
+@dataclass(frozen=True)
+class PresetEnvironment:
+    """Factory for one preset; imports the engine only when a recipe builds the environment."""
+
+    preset: str
+
+    def __call__(self, config: LocomotionConfig) -> LocomotionEnv:
+        from codesign_mpm.env import LocomotionEnv
+
+        return LocomotionEnv(config, PRESETS[self.preset])
+
+
+@hookimpl
+def codesign_register(registry: PluginRegistrar) -> None:
+    for name, preset in PRESETS.items():
+        registry.add("environment", name, PresetEnvironment(name), "codesign_mpm.config:LocomotionConfig",
+                     preset.description)
+
+
+@hookimpl
+def codesign_cli(app: typer.Typer) -> None:
+    import typer  # already loaded by the CLI
+
+    @app.command()
+    def simulate(
+        scene: Path = typer.Argument(..., help="Scene YAML (keys of codesign_mpm.scene.Scene)."),
+        frames: int = typer.Option(100, "--frames", min=0, help="Frames (control steps) to simulate."),
+        export: Optional[Path] = typer.Option(
+            None, "--export", help="Write per-frame x, v (frames+1, N, 3) and material, body, frame_dt to .npz."
+        ),
+        no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+    ) -> None:
+        """Simulate a scene file headless (zero actions) and print a performance summary."""
+        from codesign_mpm.simulate import load_scene
+        from codesign_mpm.simulate import simulate as run_scene
+
+        loaded = load_scene(scene)
+        report = run_scene(loaded, frames, export=export, progress=not no_progress)
+        typer.echo(f"particles               {report.particles}")
+        typer.echo(f"grid                    {' x '.join(map(str, report.grid))} (dx {loaded.dx:.4g})")
+        typer.echo(f"substeps per frame      {report.substeps} (dt {report.dt:.4g} s)")
+        typer.echo(f"frames                  {report.frames} of {loaded.frame_dt:.4g} s")
+        typer.echo(f"setup time              {report.build_time:.2f} s")
+        typer.echo(f"wall time               {report.wall_time:.2f} s "
+                   f"(first frame {report.first_frame_time:.2f} s: kernel compile or cache load)")
+        typer.echo(f"particle-substeps / s   {report.particle_substeps_per_second:.3g} (after the first frame)")
+        if export is not None:
+            typer.echo(f"exported                {export}")

@@ -1,0 +1,152 @@
+"""Locomotion environments on the real engine (forward only, dx = 1/32 to stay fast)."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from codesign.cli import main
+from codesign.errors import RecipeError
+from codesign.interfaces import DesignFields
+from codesign_mpm.config import PRESETS, LocomotionConfig, TaskConfig, TerrainConfig
+from codesign_mpm.env import LocomotionEnv
+
+GRAVITY = 3.8
+QUICKSTART = Path(__file__).resolve().parents[2] / "recipes" / "quickstart.yaml"
+
+
+def make_env(preset: str = "ground", task: str = "movement_speed", direction=(1.0, 0.0, 0.0),
+             horizon: int = 25) -> LocomotionEnv:
+    config = LocomotionConfig(dx=1 / 32, horizon=horizon, terrain=TerrainConfig(height=0.1),
+                              task=TaskConfig(name=task, direction=list(direction)))
+    return LocomotionEnv(config, PRESETS[preset])
+
+
+def full_design(env: LocomotionEnv, occupancy=None) -> DesignFields:
+    base = env.base_particles
+    return DesignFields(occupancy=np.ones(base.n) if occupancy is None else occupancy,
+                        stiffness=base.youngs_modulus.copy(), muscle=base.muscle.copy(), fiber=base.fiber.copy())
+
+
+def rollout(env: LocomotionEnv, actions) -> tuple[np.ndarray, list]:
+    """COM displacement over an episode and its step results."""
+    start = env.reset()[:3]
+    results = [env.step(a) for a in actions]
+    return results[-1].observation[:3] - start, results
+
+
+@pytest.fixture
+def env():
+    environment = make_env()
+    yield environment
+    environment.close()
+
+
+def test_spaces_observation_and_episode_end(env):
+    n = env.base_particles.n
+    assert env.design_space.points.shape == (n, 3) and env.design_space.n_actuators == 4
+    assert (env.action_dim, env.observation_dim, env.control_dt) == (4, 9, 8e-3)
+    obs = env.reset(full_design(env))
+    assert obs.shape == (9,)
+    np.testing.assert_allclose(obs[:3], env.base_particles.x.mean(0), atol=1e-5)  # uniform mass
+    np.testing.assert_array_equal(obs[6:], [1.0, 0.0, 0.0])
+    for t in range(env.horizon):
+        result = env.step(np.zeros(4))
+        assert result.done == (t == env.horizon - 1)
+    np.testing.assert_array_equal(result.info["com"], result.observation[:3])
+
+
+def test_robot_rests_without_action_and_moves_with_a_gait(env):
+    steps = range(env.horizon)
+    still, _ = rollout(env, [np.zeros(4) for _ in steps])
+    gait, _ = rollout(env, [0.5 * np.sin(0.6 * t + np.arange(4) * np.pi / 2) for t in steps])
+    assert np.abs(still[[0, 2]]).max() < 1e-4
+    assert abs(gait[0]) > 20 * max(abs(still[0]), 1e-5)
+
+
+def test_a_push_slides_farther_on_ice_and_obeys_coulomb_on_ground():
+    # A robot launched at 1 unit/s decelerates at mu * g while sliding: d = v t - mu g t^2 / 2.
+    travelled = {}
+    for name in ("ground", "ice"):
+        env = make_env(name)
+        env.base_particles.v[:, 0] = 1.0
+        try:
+            displacement, results = rollout(env, [np.zeros(4)] * env.horizon)
+        finally:
+            env.close()
+        assert results[0].reward == pytest.approx(1.0, abs=0.1)  # movement_speed: COM velocity along x
+        t = env.horizon * env.control_dt
+        assert displacement[0] == pytest.approx(t - PRESETS[name].friction * GRAVITY * t * t / 2, abs=0.01)
+        travelled[name] = displacement[0]
+    assert travelled["ice"] > travelled["ground"] + 0.02
+
+
+@pytest.mark.parametrize("omega, sign", [(2.0, 1), (-2.0, -1)])
+def test_turning_rewards_counter_clockwise_spin_about_up(omega, sign):
+    env = make_env(task="turning")
+    x = env.base_particles.x
+    env.base_particles.v[:] = np.cross([0.0, omega, 0.0], x - x.mean(0))  # rigid spin about +y
+    try:
+        env.reset()
+        reward = env.step(np.zeros(4)).reward
+    finally:
+        env.close()
+    assert sign * reward > 0.05  # ~ |omega| * mean distance from the axis, minus friction losses
+
+
+def test_low_occupancy_removes_particles_and_scales_mass(env):
+    env.reset(full_design(env))
+    first = env.sim
+    n = env.base_particles.n
+    occupancy = np.where(env.base_particles.x[:, 0] < np.median(env.base_particles.x[:, 0]), 0.3, 0.8)
+    env.reset(full_design(env, occupancy))
+    kept = occupancy >= 0.5
+    assert env.sim is not first and env.sim.n == kept.sum() < n
+    np.testing.assert_allclose(env.particles.volume, env.base_particles.volume[kept] * 0.8)
+    np.testing.assert_allclose(env.particles.x, env.base_particles.x[kept])
+    assert np.isfinite(env.step(np.zeros(4)).observation).all()
+    same = env.sim
+    env.reset(full_design(env, np.where(kept, 0.6, 0.1)))  # same count: the simulator is reused
+    assert env.sim is same
+
+
+def test_a_stiffer_design_gets_a_smaller_time_step(env):
+    env.reset(full_design(env))
+    substeps = env.sim.timestep.substeps
+    stiff = full_design(env)
+    stiff.stiffness *= 4  # wave speed doubles, so the CFL bound halves
+    env.reset(stiff)
+    assert env.sim.timestep.substeps >= 2 * substeps - 1
+    assert np.isfinite(env.step(np.ones(4)).observation).all()
+
+
+def test_torch_designs_are_accepted():
+    torch = pytest.importorskip("torch")
+    env = make_env()
+    design = full_design(env)
+    occupancy = torch.ones(env.base_particles.n, requires_grad=True)
+    try:
+        obs = env.reset(DesignFields(occupancy, torch.tensor(design.stiffness), torch.tensor(design.muscle),
+                                     torch.tensor(design.fiber)))
+    finally:
+        env.close()
+    assert np.isfinite(obs).all()
+
+
+def test_terrain_inside_the_wall_band_is_rejected():
+    config = LocomotionConfig(dx=1 / 32, terrain=TerrainConfig(height=0.05))
+    with pytest.raises(RecipeError, match=r"environment.terrain.height: 0.05 is below the wall band"):
+        LocomotionEnv(config, PRESETS["ground"])
+
+
+def test_quickstart_recipe_runs_through_the_cli(tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    with pytest.raises(SystemExit) as info:
+        main(["run", str(QUICKSTART), "environment.horizon=10", "--run-dir", str(run_dir),
+              "--no-progress"])
+    assert info.value.code == 0 and capsys.readouterr().out.strip() == str(run_dir)
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert [row["episode_length"] for row in rows] == [10.0, 10.0]
+    assert all(np.isfinite(row["episode_return"]) and row["episode_return"] != 0 for row in rows)
+    assert json.loads((run_dir / "summary.json").read_text())["status"] == "completed"
