@@ -149,8 +149,9 @@ class _Storage:
         self.grid_v_out = ti.Vector.field(3, float, shape=gs, needs_grad=grad)
         self.height = ti.field(float, shape=(gs[0], gs[2]))
         self.normal = ti.Vector.field(3, float, shape=(gs[0], gs[2]))
-        self.lo = ti.Vector.field(3, ti.i32, shape=())
-        self.hi = ti.Vector.field(3, ti.i32, shape=())
+        # the node box touched by particles; scalar fields so the reduction stays thread-local
+        self.lo = [ti.field(ti.i32, shape=()) for _ in range(3)]
+        self.hi = [ti.field(ti.i32, shape=()) for _ in range(3)]
         self.dt = ti.field(float, shape=())
         self.dx = ti.field(float, shape=())
         self.gravity = ti.Vector.field(3, float, shape=())
@@ -211,13 +212,14 @@ class _Storage:
 
     @ti.kernel
     def _bounds(self, s: ti.i32, n: ti.i32):
-        self.lo[None] = ti.Vector([self.grid_shape[0], self.grid_shape[1], self.grid_shape[2]])
-        self.hi[None] = ti.Vector([0, 0, 0])
+        for d in ti.static(range(3)):
+            self.lo[d][None] = self.grid_shape[d]
+            self.hi[d][None] = 0
         for p in range(n):
             base = self._base(self.x[s, p])
             for d in ti.static(range(3)):
-                ti.atomic_min(self.lo[None][d], base[d])
-                ti.atomic_max(self.hi[None][d], base[d] + 3)
+                ti.atomic_min(self.lo[d][None], base[d])
+                ti.atomic_max(self.hi[d][None], base[d] + 3)
 
     @ti.func
     def _elastic_stress(self, model: ti.template(), F, mu, la):
@@ -272,15 +274,15 @@ class _Storage:
 
     @ti.kernel
     def _clear_grid(self):
-        for I in ti.grouped(ti.ndrange((self.lo[None][0], self.hi[None][0]), (self.lo[None][1], self.hi[None][1]),
-                                       (self.lo[None][2], self.hi[None][2]))):
+        for I in ti.grouped(ti.ndrange((self.lo[0][None], self.hi[0][None]), (self.lo[1][None], self.hi[1][None]),
+                                       (self.lo[2][None], self.hi[2][None]))):
             self.grid_v_in[I] = ti.Vector.zero(float, 3)
             self.grid_m[I] = 0.0
 
     @ti.kernel
     def _clear_grid_grad(self):
-        for I in ti.grouped(ti.ndrange((self.lo[None][0], self.hi[None][0]), (self.lo[None][1], self.hi[None][1]),
-                                       (self.lo[None][2], self.hi[None][2]))):
+        for I in ti.grouped(ti.ndrange((self.lo[0][None], self.hi[0][None]), (self.lo[1][None], self.hi[1][None]),
+                                       (self.lo[2][None], self.hi[2][None]))):
             self.grid_v_in.grad[I] = ti.Vector.zero(float, 3)
             self.grid_m.grad[I] = 0.0
             self.grid_v_out.grad[I] = ti.Vector.zero(float, 3)
@@ -288,8 +290,8 @@ class _Storage:
     @ti.kernel
     def _grid_op(self):
         bc = ti.static(self.boundary_cells)
-        for I in ti.grouped(ti.ndrange((self.lo[None][0], self.hi[None][0]), (self.lo[None][1], self.hi[None][1]),
-                                       (self.lo[None][2], self.hi[None][2]))):
+        for I in ti.grouped(ti.ndrange((self.lo[0][None], self.hi[0][None]), (self.lo[1][None], self.hi[1][None]),
+                                       (self.lo[2][None], self.hi[2][None]))):
             dt, dx, mu = self.dt[None], self.dx[None], self.friction[None]
             m = self.grid_m[I]
             v = ti.Vector.zero(float, 3)
@@ -521,8 +523,9 @@ class Simulator:
 
     def _grid_update(self, s: int, so: int, t: int) -> None:
         if self.scene.grid_region == "full":
-            self.k.lo[None] = [0, 0, 0]
-            self.k.hi[None] = list(self.layout.grid_shape)
+            for d in range(3):
+                self.k.lo[d][None] = 0
+                self.k.hi[d][None] = self.layout.grid_shape[d]
         else:
             self.k._bounds(s, self.n)
         self.k._clear_grid()

@@ -67,3 +67,23 @@ def codesign_cli(app: typer.Typer) -> None:
         typer.echo(f"particle-substeps / s   {report.particle_substeps_per_second:.3g} (after the first frame)")
         if export is not None:
             typer.echo(f"exported                {export}")
+
+    bench = typer.Typer(help="Benchmarks that print JSON lines to compare run to run.", no_args_is_help=True)
+    app.add_typer(bench, name="bench")
+
+    @bench.command("engine")
+    def bench_engine(
+        scale: list[str] = typer.Option(["small"], "--scale", help="small (about 7.7k particles, dx 1/64) "
+                                        "and/or paper (about 61k particles, dx 1/128); repeatable."),
+        frames: int = typer.Option(200, "--frames", min=1, help="Frames of the differentiable episode."),
+    ) -> None:
+        """Forward particle-substeps/s (float32, float64, dense grid), (forward + backward) / forward
+        with checkpointing, peak memory of a differentiable episode, and first-call (compile) time."""
+        import json
+
+        from codesign_mpm.bench import SCALES, run_engine_bench
+
+        for s in scale:
+            if s not in SCALES:
+                raise typer.BadParameter(f"--scale {s!r}: choose from {', '.join(SCALES)}")
+        run_engine_bench(scale, frames, lambda record: typer.echo(json.dumps(record)))

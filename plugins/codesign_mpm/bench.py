@@ -1,0 +1,124 @@
+"""`codesign bench engine`: throughput, backward cost, memory and compile time, as JSON lines.
+
+Every measurement runs in its own subprocess, so Taichi initialises with the requested
+precision and the peak resident memory (ru_maxrss) belongs to that measurement alone.
+Timings are medians over repeats; compare runs on the same machine only.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+SCALES = {
+    # the issue's scene (a): about 60k particles, dx 1/128 in the unit cube
+    "paper": dict(dx=1 / 128, robot=[0.25, 0.12, 0.12], terrain=0.05),
+    # a CPU-friendly default: about 7.7k particles, dx 1/64
+    "small": dict(dx=1 / 64, robot=[0.25, 0.12, 0.12], terrain=0.1),
+}
+
+
+@dataclass
+class Case:
+    scale: str
+    dtype: str
+    grid_region: str = "bbox"
+
+
+def robot_scene(case: Case):
+    from codesign_mpm import BodySpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec
+
+    s = SCALES[case.scale]
+    return Scene(size=[1.0, 1.0, 1.0], dx=s["dx"], dtype=case.dtype, grid_region=case.grid_region,
+                 terrain=TerrainSpec(kind="flat", height=s["terrain"], friction=0.5),
+                 bodies=[BodySpec(name="robot", robot=True, shape=ShapeSpec(size=s["robot"]),
+                                  center=[0.5, 0.0, 0.5], rest_on_terrain=True, muscles=MuscleSpec(groups=[2, 2, 1]))])
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def measure_forward(case: Case, repeats: int = 5, frames: int = 3) -> dict:
+    from codesign_mpm import build_particles
+    from codesign_mpm.engine import Simulator
+
+    scene = robot_scene(case)
+    particles = build_particles(scene)
+    t0 = time.perf_counter()
+    sim = Simulator(scene, particles)
+    sim.step(np.zeros(sim.n_actuators))  # compiles (or loads from the offline cache)
+    first = time.perf_counter() - t0
+    rates = []
+    for r in range(repeats):
+        t0 = time.perf_counter()
+        sim.step(np.full(sim.n_actuators, 0.1 * (-1) ** r), frames=frames)
+        rates.append(sim.n * frames * sim.timestep.substeps / (time.perf_counter() - t0))
+    return dict(measure="forward", particles=sim.n, substeps_per_frame=sim.timestep.substeps,
+                dt=sim.timestep.dt, first_frame_s=round(first, 3),
+                particle_substeps_per_s=float(np.median(rates)), repeats=[round(r) for r in rates])
+
+
+def measure_backward(case: Case, frames: int = 200, repeats: int = 1) -> dict:
+    """(forward + backward) / forward for one differentiable episode, and its peak memory."""
+    from codesign_mpm import build_particles
+    from codesign_mpm.engine import Simulator
+
+    scene = robot_scene(case)
+    particles = build_particles(scene)
+    t0 = time.perf_counter()
+    sim = Simulator(scene, particles, requires_grad=True, max_frames=frames)
+    warm = np.zeros((1, sim.n_actuators))
+    sim.rollout(warm)
+    sim.backward(com_v=np.ones((2, 3)))
+    first = time.perf_counter() - t0
+    actions = 0.1 * np.sin(np.arange(frames)[:, None] * 0.3 + np.arange(sim.n_actuators))
+    fwd, total = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = sim.rollout(actions)
+        t1 = time.perf_counter()
+        sim.backward(com_v=np.tile([1.0, 0.0, 0.0], (frames + 1, 1)) / frames)
+        t2 = time.perf_counter()
+        fwd.append(t1 - t0)
+        total.append(t2 - t0)
+    assert np.isfinite(out.com_x).all()
+    substeps = frames * sim.timestep.substeps
+    return dict(measure="backward", particles=sim.n, frames=frames, substeps=substeps,
+                checkpoint_every=sim.segment, first_call_s=round(first, 3),
+                forward_s=float(np.median(fwd)), forward_backward_s=float(np.median(total)),
+                backward_over_forward=float(np.median(total) / np.median(fwd)),
+                peak_rss_mb=round(_peak_rss_mb(), 1))
+
+
+def _run_isolated(kind: str, case: Case, **kwargs) -> dict:
+    args = [sys.executable, "-m", "codesign_mpm.bench", kind, case.scale, case.dtype, case.grid_region,
+            json.dumps(kwargs)]
+    done = subprocess.run(args, capture_output=True, text=True)
+    if done.returncode:
+        return dict(measure=kind, error=done.stderr.strip().splitlines()[-1] if done.stderr else "failed")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def run_engine_bench(scales: list[str], frames: int, emit) -> None:
+    """Emit one JSON object per measurement (see docs/performance.md for what each means)."""
+    machine = dict(machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version())
+    for scale in scales:
+        for case in (Case(scale, "float32"), Case(scale, "float64"), Case(scale, "float32", "full")):
+            emit(dict(scale=scale, dtype=case.dtype, grid_region=case.grid_region,
+                      **_run_isolated("forward", case), **machine))
+        case = Case(scale, "float32")
+        emit(dict(scale=scale, dtype="float32", **_run_isolated("backward", case, frames=frames), **machine))
+
+
+if __name__ == "__main__":  # one isolated measurement, used by _run_isolated
+    kind, scale, dtype, region, kwargs = sys.argv[1:6]
+    measure = {"forward": measure_forward, "backward": measure_backward}[kind]
+    print(json.dumps(measure(Case(scale, dtype, region), **json.loads(kwargs))))
