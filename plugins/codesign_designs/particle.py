@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from codesign.errors import RecipeError
+from codesign.geometry import grid_partition
 from codesign.interfaces import DesignFields, DesignSpace, Representation
 from codesign_designs.config import ParticleConfig
 
@@ -18,14 +19,6 @@ def near_cubic_grid(k: int) -> tuple[int, int, int]:
                if k % (a * b) == 0]
     triples = [t for t in triples if t[0] >= t[1] >= t[2]]
     return min(triples, key=lambda t: (t[0] / t[2], t[0]))
-
-
-def grid_cells(points: np.ndarray, groups: tuple[int, int, int]) -> np.ndarray:
-    """Index (N,) of the block each point falls in when its bounding box is cut into ``groups``."""
-    lo, hi = points.min(0), points.max(0)
-    g = np.asarray(groups)
-    cell = np.minimum(((points - lo) / np.maximum(hi - lo, 1e-12) * g).astype(int), g - 1)
-    return (cell[:, 0] * g[1] + cell[:, 1]) * g[2] + cell[:, 2]
 
 
 class ParticleRepresentation(Representation):
@@ -52,7 +45,7 @@ class ParticleRepresentation(Representation):
         n, k = len(space.points), space.n_actuators
         if cfg.muscle_init == "grid":
             muscle = np.zeros((n, k))
-            muscle[np.arange(n), grid_cells(space.points, near_cubic_grid(k))] = cfg.muscle_sharpness
+            muscle[np.arange(n), grid_partition(space.points, near_cubic_grid(k))] = cfg.muscle_sharpness
         else:
             muscle = rng.normal(0.0, 1.0, (n, k))
         dtype = torch.get_default_dtype()

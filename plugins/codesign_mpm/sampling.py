@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from codesign.geometry import grid_partition
 from codesign_mpm.materials import MATERIALS
 from codesign_mpm.scene import BodySpec, Scene, SceneError, ShapeSpec
 from codesign_mpm.terrain import height_map
@@ -117,16 +118,6 @@ def rotation_matrix(degrees: list[float]) -> np.ndarray:
     return Rz @ Ry @ Rx
 
 
-def _muscles(offsets: np.ndarray, groups: list[int]) -> np.ndarray:
-    """One-hot membership (N, prod(groups)) of a grid of muscle blocks over the bounding box."""
-    lo, hi = offsets.min(0), offsets.max(0)
-    rel = (offsets - lo) / np.maximum(hi - lo, 1e-12)
-    g = np.asarray(groups)
-    cell = np.minimum((rel * g).astype(int), g - 1)
-    index = (cell[:, 0] * g[1] + cell[:, 1]) * g[2] + cell[:, 2]
-    return np.eye(int(np.prod(g)))[index]
-
-
 def build_particles(scene: Scene) -> Particles:
     """Sample every body of a (validated) scene; actuators of all bodies are numbered in order."""
     parts = []
@@ -171,7 +162,8 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
     vol = total_volume / n
     mat = body.material
     if body.muscles is not None:
-        muscle = _muscles(local, list(body.muscles.groups))
+        groups = list(body.muscles.groups)
+        muscle = np.eye(int(np.prod(groups)))[grid_partition(local, groups)]
         fiber = rotation_matrix(body.rotation) @ np.asarray(body.muscles.fiber, dtype=float)
         fiber = np.tile(fiber / np.linalg.norm(fiber), (n, 1))
         ratio = body.muscles.stiffness_ratio

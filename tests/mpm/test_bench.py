@@ -1,0 +1,13 @@
+"""The benchmark code path stays runnable (its numbers are for `codesign bench`, not for tests)."""
+import json
+
+from codesign_mpm.bench import Case, measure_forward
+
+
+def test_forward_measurement_reports_throughput():
+    record = measure_forward(Case("small", "float32"), repeats=2, frames=1)
+    json.dumps(record)  # one JSON line per measurement
+    assert record["measure"] == "forward"
+    assert record["particles"] > 5000
+    assert abs(record["substeps_per_frame"] * record["dt"] - 8e-3) < 1e-12
+    assert record["particle_substeps_per_s"] > 0 and len(record["repeats"]) == 2
