@@ -152,3 +152,14 @@ def test_other_elastic_models_hold_a_resting_body(model):
         assert abs(np.linalg.det(F).mean() - 1) < 0.02
     finally:
         sim.close()
+
+
+def test_elastic_bar_rings_at_its_analytic_frequency_and_converges():
+    from codesign_mpm.accuracy import REFERENCE, Setting, measure
+
+    coarse = measure(REFERENCE)
+    fine = measure(Setting(dx=1 / 48))
+    # f = sqrt(E / rho) / (2 L) for a free-free bar with Poisson's ratio 0
+    assert coarse["relative_error"] < 0.03
+    assert fine["relative_error"] < 0.015
+    assert fine["relative_error"] < 0.6 * coarse["relative_error"]
