@@ -118,7 +118,86 @@ def run_engine_bench(scales: list[str], frames: int, emit) -> None:
         emit(dict(scale=scale, dtype="float32", **_run_isolated("backward", case, frames=frames), **machine))
 
 
-if __name__ == "__main__":  # one isolated measurement, used by _run_isolated
-    kind, scale, dtype, region, kwargs = sys.argv[1:6]
-    measure = {"forward": measure_forward, "backward": measure_backward}[kind]
-    print(json.dumps(measure(Case(scale, dtype, region), **json.loads(kwargs))))
+# `codesign bench environments`: one scene per environment preset, forward throughput.
+ENV_SCALES = {
+    # the paper's scale: dx 1/128 and about 144k particles; the cover's thickness is solved for
+    # that count (the ocean's water instead covers the robot, at one particle per cell)
+    "paper": dict(dx=1 / 128, particles=144_000),
+    "small": dict(dx=1 / 64, particles=18_000),
+}
+OLD_MS_PER_SUBSTEP = {"ocean": 208.0, "desert": 245.0, "snow": 245.0, "clay": 245.0, "wetland": 245.0}
+"""The old SoftZoo code at the paper's scale (41 substeps per control step), for comparison."""
+
+
+def environment_particles(name: str, scale: str):
+    """The preset's scene and particles at `scale`, with the cover thick enough for its count."""
+    from codesign_mpm.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
+    from codesign_mpm.env import LocomotionEnv
+
+    s, preset = ENV_SCALES[scale], PRESETS[name]
+    target = s["particles"]
+    config = PRESET_CONFIGS[name](dx=s["dx"], size=[1.0, 0.5, 0.5], terrain=TerrainConfig(
+        height=0.05, friction=preset.friction), robot=RobotConfig(size=[0.25, 0.12, 0.12], position=[0.5, 0.25],
+                                                                 youngs_modulus=preset.robot_youngs_modulus))
+    if name == "ocean":  # water deep enough to cover the robot, one particle per cell
+        config.cover.thickness, config.cover.particles_per_cell = 0.14, 1
+    env = LocomotionEnv(config, preset)
+    if config.cover.kind != "none" and name != "ocean":
+        # the count grows linearly with the thickness (less the robot's cells): one secant step
+        for _ in range(2):
+            per_thickness = env.cover_particles.n / config.cover.thickness
+            config.cover.thickness += (target - env.particles.n) / per_thickness
+            env = LocomotionEnv(config, preset)
+    return env.scene, env.particles
+
+
+def measure_environment(name: str, scale: str, frames: int = 3, repeats: int = 3) -> dict:
+    """Forward particle-substeps/s, substeps per control step and ms per substep of one preset."""
+    from codesign_mpm.engine import Simulator
+
+    scene, particles = environment_particles(name, scale)
+    sim = Simulator(scene, particles)
+    rng = np.random.default_rng(0)
+    t0 = time.perf_counter()
+    sim.step(rng.uniform(-0.3, 0.3, sim.n_actuators))  # compiles (or loads from the offline cache)
+    first = time.perf_counter() - t0
+    seconds = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(frames):
+            sim.step(rng.uniform(-0.3, 0.3, sim.n_actuators))
+        seconds.append((time.perf_counter() - t0) / (frames * sim.timestep.substeps))
+    per_substep = float(np.median(seconds))
+    record = dict(measure="environment", environment=name, particles=sim.n,
+                  materials=sorted({b.material.kind for b in scene.bodies}),
+                  substeps_per_control_step=sim.timestep.substeps, dt=sim.timestep.dt,
+                  ms_per_substep=round(1e3 * per_substep, 3), particle_substeps_per_s=sim.n / per_substep,
+                  first_frame_s=round(first, 3))
+    if scale == "paper" and name in OLD_MS_PER_SUBSTEP:
+        record["old_ms_per_substep"] = OLD_MS_PER_SUBSTEP[name]
+    sim.close()
+    return record
+
+
+def run_environment_bench(scales: list[str], names: list[str], emit) -> None:
+    """Emit one JSON object per (scale, environment), each measured in its own process."""
+    machine = dict(machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version())
+    for scale in scales:
+        for name in names:
+            args = [sys.executable, "-m", "codesign_mpm.bench", "environment", name, scale]
+            done = subprocess.run(args, capture_output=True, text=True)
+            if done.returncode:
+                record = dict(measure="environment", environment=name,
+                              error=done.stderr.strip().splitlines()[-1] if done.stderr else "failed")
+            else:
+                record = json.loads(done.stdout.strip().splitlines()[-1])
+            emit(dict(scale=scale, **record, **machine))
+
+
+if __name__ == "__main__":  # one isolated measurement, used by _run_isolated / run_environment_bench
+    if sys.argv[1] == "environment":
+        print(json.dumps(measure_environment(sys.argv[2], sys.argv[3])))
+    else:
+        kind, scale, dtype, region, kwargs = sys.argv[1:6]
+        measure = {"forward": measure_forward, "backward": measure_backward}[kind]
+        print(json.dumps(measure(Case(scale, dtype, region), **json.loads(kwargs))))

@@ -1,12 +1,42 @@
 """Recipe schemas and environment presets, kept light so validating a recipe never imports Taichi.
 
-An environment name (``ground``, ``ice``) is a preset: the same locomotion setup with
-preset-specific terrain physics. Later biomes (desert, snow, ...) add a row to `PRESETS`
-once the engine has their materials.
+An environment name (``ground``, ``desert``, ``ocean``, ...) is a preset: the same locomotion
+setup with preset-specific terrain friction, ground cover (a layer of sand, snow, clay, mud
+or water laid on the terrain around the robot) and robot stiffness. Each preset registers
+its own config class (`PRESET_CONFIGS`) whose defaults are the preset's values, so
+``codesign show`` prints every material parameter an environment uses.
 """
 
-from dataclasses import dataclass, field
+import copy
+from dataclasses import dataclass, field, make_dataclass
 from typing import Optional
+
+COVER_KINDS = ("none", "sand", "snow", "clay", "mud", "water")
+
+
+@dataclass
+class CoverConfig:
+    """Ground cover laid on the terrain, leaving out the cells the robot occupies.
+
+    The material fields are those of `codesign_mpm.scene.MaterialSpec`; each matters only
+    to the kinds named in its help.
+    """
+
+    kind: str = field(default="none", metadata={"choices": list(COVER_KINDS)})
+    thickness: float = field(default=0.05, metadata={"gt": 0, "help": "depth of the layer above the terrain"})
+    youngs_modulus: float = field(default=1.0e5, metadata={"gt": 0, "help": "all but water"})
+    poisson_ratio: float = field(default=0.2, metadata={"gt": -1, "lt": 0.5})
+    density: float = field(default=1.0e3, metadata={"gt": 0})
+    friction_angle: float = field(default=45.0, metadata={"ge": 0, "le": 80, "help": "sand: degrees"})
+    cohesion: float = field(default=0.0, metadata={"ge": 0, "help": "sand: tensile strength"})
+    yield_stress: float = field(default=200.0, metadata={"gt": 0, "help": "clay, mud: von Mises yield stress"})
+    critical_compression: float = field(default=2.5e-2, metadata={"gt": 0, "lt": 1, "help": "snow: theta_c"})
+    critical_stretch: float = field(default=7.5e-3, metadata={"gt": 0, "help": "snow: theta_s"})
+    hardening: float = field(default=10.0, metadata={"ge": 0, "help": "snow: xi"})
+    max_hardening: float = field(default=10.0, metadata={"ge": 1, "le": 100, "help": "snow: bound on exp(xi (1-Jp))"})
+    bulk_modulus: float = field(default=1.0e5, metadata={"gt": 0, "help": "water: K (sound speed sqrt(K/rho))"})
+    viscosity: float = field(default=0.0, metadata={"ge": 0, "help": "water, mud: dynamic viscosity"})
+    particles_per_cell: int = field(default=8, metadata={"choices": [1, 8, 27, 64]})
 
 
 @dataclass(frozen=True)
@@ -16,11 +46,33 @@ class EnvironmentPreset:
     description: str
     friction: float
     """Coulomb coefficient of the terrain surface."""
+    cover: CoverConfig = field(default_factory=CoverConfig)
+    robot_youngs_modulus: float = 1.0e4
 
 
 PRESETS: dict[str, EnvironmentPreset] = {
     "ground": EnvironmentPreset("Robot on firm ground (friction 0.5); flat or Perlin terrain.", friction=0.5),
     "ice": EnvironmentPreset("Robot on slippery ice (friction 0.05); flat or Perlin terrain.", friction=0.05),
+    "desert": EnvironmentPreset(
+        "A layer of sand (Drucker-Prager, friction angle 45 deg) on the terrain.", friction=0.5,
+        cover=CoverConfig(kind="sand", thickness=0.02, friction_angle=45.0)),
+    "snow": EnvironmentPreset(
+        "A layer of light snow (Stomakhin 2013) that compacts and hardens under the robot.", friction=0.5,
+        cover=CoverConfig(kind="snow", thickness=0.05, youngs_modulus=1.0e4, density=400.0)),
+    "clay": EnvironmentPreset(
+        "A layer of clay (von Mises, yield stress 200) that keeps the robot's footprints.", friction=0.5,
+        cover=CoverConfig(kind="clay", thickness=0.05, yield_stress=200.0)),
+    "wetland": EnvironmentPreset(
+        "A layer of mud: saturated, nearly incompressible soil with a low yield stress and viscosity.",
+        friction=0.5, cover=CoverConfig(kind="mud", thickness=0.05, youngs_modulus=2.0e4, poisson_ratio=0.45,
+                                        density=1.3e3, yield_stress=30.0, viscosity=1.0)),
+    "shallow_water": EnvironmentPreset(
+        "Shallow water (weakly compressible, bulk modulus 1e5) over the terrain.", friction=0.5,
+        cover=CoverConfig(kind="water", thickness=0.05, bulk_modulus=1.0e5)),
+    "ocean": EnvironmentPreset(
+        "Water deep enough to cover the robot over a frictionless floor; a stiffer robot (E 1e5).",
+        friction=0.0, cover=CoverConfig(kind="water", thickness=0.15, bulk_modulus=1.0e5),
+        robot_youngs_modulus=1.0e5),
 }
 
 
@@ -42,6 +94,9 @@ class RobotConfig:
         metadata={"ge": 1, "min_len": 3, "help": "grid of muscle blocks along x, y, z; K = their product"},
     )
     particles_per_cell: int = field(default=8, metadata={"choices": [1, 8, 27, 64]})
+    rest_on: str = field(default="terrain", metadata={
+        "choices": ["terrain", "cover"], "help": "terrain: stand on the terrain inside the cover (the paper); "
+                                                "cover: start on top of the cover layer"})
 
 
 @dataclass
@@ -80,3 +135,19 @@ class LocomotionConfig:
     robot: RobotConfig = field(default_factory=RobotConfig)
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
+    cover: Optional[CoverConfig] = field(
+        default=None, metadata={"help": "ground cover layer; null = the environment's own"})
+
+
+def _preset_config(name: str, preset: EnvironmentPreset) -> type:
+    """LocomotionConfig with the preset's friction, cover and robot stiffness as defaults."""
+    return make_dataclass(
+        f"{name.title().replace('_', '')}Config",
+        [("terrain", TerrainConfig, field(default_factory=lambda: TerrainConfig(friction=preset.friction))),
+         ("robot", RobotConfig, field(default_factory=lambda: RobotConfig(youngs_modulus=preset.robot_youngs_modulus))),
+         ("cover", Optional[CoverConfig], field(default_factory=lambda: copy.copy(preset.cover)))],
+        bases=(LocomotionConfig,),
+        namespace={"__module__": __name__, "__doc__": f"Locomotion in the '{name}' environment: {preset.description}"})
+
+
+PRESET_CONFIGS: dict[str, type] = {name: _preset_config(name, preset) for name, preset in PRESETS.items()}

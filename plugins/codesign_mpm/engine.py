@@ -4,7 +4,9 @@ One substep is four kernels, each close to its equation:
 
     bounds   -> the box of grid nodes the particles touch (only those are cleared and updated)
     p2g      -> F <- (I + dt C) F; Kirchhoff stress (elastic model + muscle); scatter m v and
-                the MLS force/affine term to 27 nodes
+                the MLS force/affine term to 27 nodes. Scenes with non-elastic materials first
+                run one small kernel per material run (`_constitutive_update`: return
+                mapping, stress), and p2g only adds the muscle term and scatters
     grid_op  -> v = p / m + dt g; terrain (height-map SDF, Coulomb friction); domain walls
     g2p      -> gather v and C; x <- x + dt v
 
@@ -13,8 +15,17 @@ differentiable segment of S substeps. A differentiable rollout stores the state 
 segment starts (checkpoints) and recomputes each segment in the backward pass, so memory
 grows with T/S + S rather than T substeps. The grid is recomputed per substep in reverse.
 
-Only what the scene uses is compiled: the elastic models present, the muscle term when the
-scene has actuators, the terrain projection when there is terrain (`ti.static`).
+Only what the scene uses is compiled: the material models present (their return mappings,
+the plastic volume ratio J_p of snow), the muscle term when the scene has actuators, the
+terrain projection when there is terrain (`ti.static`).
+
+Plastic models (sand, snow, clay, mud) work in principal Hencky strain of b = F F^T. Its
+eigenvectors come from a forward-only Jacobi solver (`_eigen_frames`); the differentiable
+kernel rotates b into that frame, where it is diagonal up to round-off, and takes eigenvalues
+and eigenvectors from first-order perturbation theory, with the eigenvector coupling
+a_pq / (a_qq - a_pp) in the bounded form x / (x^2 + eps^2) (`JACOBI_EPS`): the adjoint stays
+finite at repeated eigenvalues, the state of every body at rest, where the coupling
+multiplies a difference of equal eigenvalue functions, which is exactly zero.
 """
 # (no `from __future__ import annotations`: Taichi reads kernel annotations at runtime)
 
@@ -26,7 +37,7 @@ import numpy as np
 import taichi as ti
 
 from codesign_mpm import runtime
-from codesign_mpm.materials import MATERIALS, wave_speed
+from codesign_mpm.materials import ID, MATERIALS, MIN_HARDENING, N_PARAMS, model_wave_speed, viscosity
 from codesign_mpm.sampling import Particles
 from codesign_mpm.scene import Scene, SceneError, validate_scene
 from codesign_mpm.terrain import height_map, normals
@@ -35,6 +46,20 @@ MODEL_NAMES = {m.id: m.name for m in MATERIALS.values()}
 J_MIN = 0.1  # below this, neo-Hookean log(J) continues linearly (finite for J <= 0)
 MASS_EPS = 1e-12  # grid nodes lighter than this are treated as empty
 CAPACITY_STEP = 1024  # particle storage is allocated in these steps so similar scenes share kernels
+JACOBI_SWEEPS = 4  # cyclic sweeps of the 3x3 eigen-solver; b = F F^T stays near I for plastic models
+HENCKY_PLASTIC = (ID["sand"], ID["snow"], ID["clay"], ID["mud"])  # models with a return mapping in log strain
+JACOBI_EPS = 1e-6
+NORM_FLOOR = 1e-30  # |dev eps|^2 below this is treated as this (only reached where the result is masked off)
+
+
+def _plane(p: int, q: int) -> tuple:
+    """(p, q, D, S): a rotation in the (p, q) plane is I + (c - 1) D + s S."""
+    D = [[float(i == j and i in (p, q)) for j in range(3)] for i in range(3)]
+    S = [[float(i == p and j == q) - float(i == q and j == p) for j in range(3)] for i in range(3)]
+    return p, q, D, S
+
+
+JACOBI_PLANES = (_plane(0, 1), _plane(0, 2), _plane(1, 2))  # rotation regulariser: |d tan(theta) / d b| <= 2 / JACOBI_EPS at repeated eigenvalues
 
 
 class SimulationError(RuntimeError):
@@ -51,13 +76,19 @@ class TimeStep:
 def time_step(scene: Scene, particles: Particles) -> TimeStep:
     """Substep from the CFL condition with the stiffest material and fastest initial speed.
 
-    dt <= cfl * dx / (c_p + |v|max), c_p = sqrt((lambda + 2 mu + 8 s) / rho). A forced `dt`
-    above that bound is refused unless `allow_unstable_dt` is set.
+    dt <= cfl * dx / (c_p + |v|max), c_p = sqrt((lambda + 2 mu + 8 s) / rho) (water:
+    sqrt(K / rho); snow: at its largest hardening), and for viscous materials also the
+    explicit diffusion limit dt <= cfl * rho dx^2 / (6 eta). A forced `dt` above that bound
+    is refused unless `allow_unstable_dt` is set.
     """
-    speeds = [wave_speed(e, nu, rho, r * e) for e, nu, rho, r in
-              set(zip(particles.youngs_modulus, particles.poisson_ratio, particles.density, particles.muscle_ratio))]
+    kinds = set(zip(particles.material.tolist(), particles.youngs_modulus, particles.poisson_ratio,
+                    particles.density, particles.muscle_ratio, map(tuple, particles.params.tolist())))
+    speeds = [model_wave_speed(m, e, nu, rho, r * e, params) for m, e, nu, rho, r, params in kinds]
     vmax = float(np.linalg.norm(particles.v, axis=1).max(initial=0.0))
     stable = scene.cfl * scene.dx / (max(speeds) + vmax)
+    for m, _, _, rho, _, params in kinds:
+        if viscosity(m, params) > 0:
+            stable = min(stable, scene.cfl * rho * scene.dx ** 2 / (6 * viscosity(m, params)))
     target = stable
     if scene.dt is not None:
         if scene.dt > stable and not scene.allow_unstable_dt:
@@ -102,7 +133,7 @@ class Layout:
     slots: int  # particle states kept: 2 (ping-pong) or segment + 1 (differentiable)
     rows: int  # action / probe rows: max_frames + 1
     grid_shape: tuple[int, int, int]
-    models: tuple[int, ...]  # elastic models compiled in
+    models: tuple[int, ...]  # material models compiled in (ids of materials.MATERIALS)
     has_muscles: bool
     has_terrain: bool
     boundary_cells: int
@@ -123,6 +154,8 @@ class _Storage:
         self.layout = layout
         self.grid_shape = layout.grid_shape
         self.models = layout.models
+        self.has_params = any(MATERIALS[MODEL_NAMES[m]].plastic for m in layout.models)
+        self.has_jp = ID["snow"] in layout.models  # snow's plastic volume ratio is part of the state
         self.has_muscles = layout.has_muscles
         self.has_terrain = layout.has_terrain
         self.boundary_cells = layout.boundary_cells
@@ -159,6 +192,11 @@ class _Storage:
         self.n_bad = ti.field(ti.i32, shape=())
         self.first_bad = ti.field(ti.i32, shape=())
         self.max_speed = ti.field(float, shape=())
+        if self.has_params:  # every non-elastic scene gets the same fields, so they share compiled kernels
+            self.params = ti.Vector.field(N_PARAMS, float, shape=n)
+            self.tau = ti.Matrix.field(3, 3, float, shape=n, needs_grad=grad)  # stress of the current substep
+            self.frame = ti.Matrix.field(3, 3, float, shape=n)  # eigenvectors of b (no gradient)
+            self.Jp = ti.field(float, shape=(slots, n), needs_grad=grad)  # snow's plastic volume ratio
 
     @ti.kernel
     def _load_state(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
@@ -204,6 +242,26 @@ class _Storage:
                     self.C.grad[s, p][i, j] += C[p, i, j]
                     self.F.grad[s, p][i, j] += F[p, i, j]
 
+    @ti.kernel
+    def _load_jp(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        for p in range(n):
+            self.Jp[s, p] = jp[p]
+
+    @ti.kernel
+    def _save_jp(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        for p in range(n):
+            jp[p] = self.Jp[s, p]
+
+    @ti.kernel
+    def _save_jp_grad(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        for p in range(n):
+            jp[p] = self.Jp.grad[s, p]
+
+    @ti.kernel
+    def _add_jp_grad(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        for p in range(n):
+            self.Jp.grad[s, p] += jp[p]
+
     @ti.func
     def _base(self, xp):
         """Lowest of the 27 nodes a particle touches, clamped inside the grid."""
@@ -238,6 +296,144 @@ class _Storage:
             tau = F @ (2.0 * mu * G + la * G.trace() * I) @ F.transpose()
         return tau
 
+    @ti.func
+    def _rotate(self, A, Q, plane: ti.template()):
+        """One regularised Jacobi rotation in `plane` (index into JACOBI_PLANES): (G^T A G, Q G)."""
+        p, q, D, S = ti.static(JACOBI_PLANES[plane])
+        d = A[q, q] - A[p, p]
+        sign = ti.select(d >= 0.0, 1.0, -1.0)
+        t = 2.0 * A[p, q] * sign / (d * sign + ti.sqrt(d * d + 4.0 * A[p, q] ** 2 + JACOBI_EPS ** 2))
+        c = 1.0 / ti.sqrt(1.0 + t * t)
+        G = ti.Matrix.identity(float, 3) + (c - 1.0) * ti.Matrix(D) + t * c * ti.Matrix(S)
+        return G.transpose() @ A @ G, Q @ G
+
+    @ti.func
+    def _plastic(self, model: ti.template(), p, s, so, F, mu, la):
+        """Return mapping of one plastic model in principal Hencky strain eps = log(sigma).
+
+        Returns the projected F and its Kirchhoff stress. F changes only when the trial
+        state lies outside the model's elastic region (for snow: a stretch outside its
+        bounds), so a body loaded below yield springs back without permanent set. Written
+        without branches or reassigned locals (masks select the case): Taichi's reverse mode
+        turns locals assigned in branches into stacks, which made this kernel take tens of
+        minutes to compile.
+        """
+        # In the frame Q0 of b's eigenvectors (from _eigen_frames) A = Q0^T b Q0 is diagonal up to
+        # round-off; first-order perturbation theory gives its eigenvalues, a_ii, and eigenvectors,
+        # Q0 (I + W) with W_pq = a_pq / (a_qq - a_pp), written in the bounded form
+        # x / (x^2 + eps^2) so it stays finite where eigenvalues coincide. Value and derivative
+        # are exact to first order in the round-off a_pq.
+        Q0 = self.frame[p]
+        A = Q0.transpose() @ F @ F.transpose() @ Q0
+        w01 = A[0, 1] * (A[1, 1] - A[0, 0]) / ((A[1, 1] - A[0, 0]) ** 2 + JACOBI_EPS ** 2)
+        w02 = A[0, 2] * (A[2, 2] - A[0, 0]) / ((A[2, 2] - A[0, 0]) ** 2 + JACOBI_EPS ** 2)
+        w12 = A[1, 2] * (A[2, 2] - A[1, 1]) / ((A[2, 2] - A[1, 1]) ** 2 + JACOBI_EPS ** 2)
+        Q = Q0 @ ti.Matrix([[1.0, w01, w02], [-w01, 1.0, w12], [-w02, -w12, 1.0]])
+        eps = 0.5 * ti.log(ti.max(ti.Vector([A[0, 0], A[1, 1], A[2, 2]]), J_MIN * J_MIN))
+        tr = eps.sum()
+        dev = eps - tr / 3.0
+        n2 = dev.dot(dev)
+        prm = self.params[p]
+        eps_new = eps
+        if ti.static(model == ID["sand"]):
+            # Drucker-Prager (Klar et al. 2016): |dev tau| <= -alpha tr(tau) around the apex set by
+            # the cohesion; expansion beyond the apex loses all elastic strain (no tension).
+            tip = 3.0 * prm[1] / (3.0 * la + 2.0 * mu)  # tr(eps) at the apex
+            slope = prm[0] * (3.0 * la + 2.0 * mu) / (2.0 * mu)
+            apex = ti.cast(tr > tip, float)
+            cone = (1.0 - apex) * ti.cast(n2 > (slope * (tip - tr)) ** 2, float)
+            on_cone = tr / 3.0 + slope * (tip - tr) * dev / ti.sqrt(ti.max(n2, NORM_FLOOR))
+            eps_new = eps + apex * (tip / 3.0 - eps) + cone * (on_cone - eps)
+        elif ti.static(model == ID["clay"] or model == ID["mud"]):
+            # von Mises: |dev tau| = 2 mu |dev eps| <= sqrt(2/3) yield stress
+            radius = ti.sqrt(2.0 / 3.0) * prm[0] / (2.0 * mu)
+            outside = ti.cast(n2 > radius * radius, float)
+            eps_new = eps + outside * (tr / 3.0 + radius * dev / ti.sqrt(ti.max(n2, radius * radius)) - eps)
+        elif ti.static(model == ID["snow"]):
+            # Stomakhin et al. 2013: principal stretches clamped to [1 - theta_c, 1 + theta_s]
+            eps_new = ti.min(ti.max(eps, ti.log(1.0 - prm[0])), ti.log(1.0 + prm[1]))
+        # exp(0) - 1 == 0 exactly: an unprojected F is stored unchanged, bit for bit
+        scale = ti.exp(eps_new - eps) - 1.0
+        F_new = F + Q @ ti.Matrix([[scale[0], 0.0, 0.0], [0.0, scale[1], 0.0], [0.0, 0.0, scale[2]]]) \
+            @ Q.transpose() @ F
+        tau = ti.Matrix.zero(float, 3, 3)
+        if ti.static(model == ID["snow"]):
+            # neo-Hookean with both moduli hardened by exp(xi (1 - J_p)), bounded to keep the
+            # wave speed (and so the time step) and the gradients bounded
+            jp = self.Jp[s, p] * ti.exp((eps - eps_new).sum())
+            self.Jp[so, p] = jp
+            h = ti.min(ti.max(ti.exp(prm[2] * (1.0 - jp)), MIN_HARDENING), prm[3])
+            tau = h * (mu * (F_new @ F_new.transpose() - ti.Matrix.identity(float, 3))
+                       + la * eps_new.sum() * ti.Matrix.identity(float, 3))
+        else:  # Hencky: tau = 2 mu eps + lambda tr(eps) I, in the principal frame
+            k = 2.0 * mu * eps_new + la * eps_new.sum()
+            tau = Q @ ti.Matrix([[k[0], 0.0, 0.0], [0.0, k[1], 0.0], [0.0, 0.0, k[2]]]) @ Q.transpose()
+        return F_new, tau
+
+    @ti.func
+    def _constitutive(self, model: ti.template(), p, s, so):
+        """(F to store, Kirchhoff stress without muscle) of particle p of `model`, from slot s."""
+        C = self.C[s, p]
+        F = (ti.Matrix.identity(float, 3) + self.dt[None] * C) @ self.F[s, p]
+        E, nu = self.E[p], self.nu[p]
+        mu = E / (2.0 * (1.0 + nu))
+        la = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+        F_new = F
+        tau = ti.Matrix.zero(float, 3, 3)
+        if ti.static(not MATERIALS[MODEL_NAMES[model]].plastic):
+            tau = self._elastic_stress(model, F, mu, la)
+        elif ti.static(model == ID["water"]):
+            # weakly compressible: Cauchy pressure K (1 - J); only J is state, so F is reset to
+            # the isotropic J^(1/3) I (shear would otherwise accumulate without any stress)
+            J = F.determinant()
+            tau = self.params[p][0] * J * (J - 1.0) * ti.Matrix.identity(float, 3)
+            F_new = ti.exp(ti.log(ti.max(J, J_MIN)) / 3.0) * ti.Matrix.identity(float, 3)
+        else:
+            F_new, tau = self._plastic(model, p, s, so, F, mu, la)
+        if ti.static(model == ID["water"] or model == ID["mud"]):
+            # Newtonian viscosity, tau = J eta (grad v + grad v^T), with the APIC C as grad v
+            tau += F.determinant() * self.params[p][1] * (C + C.transpose())
+        return F_new, tau
+
+    @ti.func
+    def _update(self, p, s, so):
+        """Elastic-only scenes: (new F, stress) with the model chosen per particle."""
+        F_new = ti.Matrix.zero(float, 3, 3)
+        tau = ti.Matrix.zero(float, 3, 3)
+        if ti.static(len(self.models) == 1):
+            F_new, tau = self._constitutive(self.models[0], p, s, so)
+        else:
+            for model in ti.static(self.models):
+                if self.material[p] == model:
+                    F_new, tau = self._constitutive(model, p, s, so)
+        return F_new, tau
+
+    @ti.kernel
+    def _eigen_frames(self, s: ti.i32, start: ti.i32, end: ti.i32):
+        """Eigenvectors of b = F F^T (trial F) of particles [start, end); never differentiated.
+
+        Their derivative is taken by one Jacobi sweep inside `_plastic`: the whole iteration
+        differentiated in reverse mode is far too slow for Taichi to compile.
+        """
+        for p in range(start, end):
+            F = (ti.Matrix.identity(float, 3) + self.dt[None] * self.C[s, p]) @ self.F[s, p]
+            A = F @ F.transpose()
+            Q = ti.Matrix.identity(float, 3)
+            for _ in ti.static(range(JACOBI_SWEEPS)):
+                for plane in ti.static(range(3)):
+                    A, Q = self._rotate(A, Q, plane)
+            self.frame[p] = Q
+
+    @ti.kernel
+    def _constitutive_update(self, model: ti.template(), s: ti.i32, so: ti.i32, start: ti.i32, end: ti.i32):
+        """Scenes with plastic models: F and stress of the particles [start, end) of one model,
+        in their own kernel ahead of p2g (one small kernel per model compiles far faster than
+        all of them fused into the 27-node scatter)."""
+        for p in range(start, end):
+            F, tau = self._constitutive(model, p, s, so)
+            self.F[so, p] = F
+            self.tau[p] = tau
+
     @ti.kernel
     def _p2g(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32):
         for p in range(n):
@@ -246,18 +442,15 @@ class _Storage:
             base = self._base(self.x[s, p])
             fx = self.x[s, p] * inv_dx - ti.cast(base, float)
             w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-            F = (ti.Matrix.identity(float, 3) + dt * self.C[s, p]) @ self.F[s, p]
-            self.F[so, p] = F
-            E, nu = self.E[p], self.nu[p]
-            mu = E / (2.0 * (1.0 + nu))
-            la = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+            E = self.E[p]
+            F = ti.Matrix.zero(float, 3, 3)
             tau = ti.Matrix.zero(float, 3, 3)
-            if ti.static(len(self.models) == 1):
-                tau = self._elastic_stress(self.models[0], F, mu, la)
+            if ti.static(self.has_params):  # computed by _constitutive_update
+                F = self.F[so, p]
+                tau = self.tau[p]
             else:
-                for model in ti.static(self.models):
-                    if self.material[p] == model:
-                        tau = self._elastic_stress(model, F, mu, la)
+                F, tau = self._update(p, s, so)
+                self.F[so, p] = F
             if ti.static(self.has_muscles):
                 Ff = F @ self.fiber[p]
                 a = self.act[t].dot(self.muscle[p])
@@ -349,6 +542,8 @@ class _Storage:
             self.v[dst, p] = self.v[src, p]
             self.C[dst, p] = self.C[src, p]
             self.F[dst, p] = self.F[src, p]
+            if ti.static(self.has_jp):
+                self.Jp[dst, p] = self.Jp[src, p]
 
     @ti.kernel
     def _check(self, s: ti.i32, n: ti.i32):
@@ -367,6 +562,13 @@ class _Storage:
                 ti.atomic_min(self.first_bad[None], p)
             ti.atomic_max(self.max_speed[None], v.norm())
 
+
+
+def _model_runs(material: np.ndarray) -> list[tuple[int, int, int]]:
+    """(model, start, end) of each run of equal models in particle order (bodies are contiguous)."""
+    edges = np.flatnonzero(np.diff(material)) + 1
+    starts, ends = np.r_[0, edges], np.r_[edges, len(material)]
+    return [(int(material[a]), int(a), int(b)) for a, b in zip(starts, ends)]
 
 
 _free: dict[tuple[int, Layout], list[_Storage]] = {}
@@ -422,6 +624,7 @@ class Simulator:
         self._generation = runtime.generation
         self._finalizer = weakref.finalize(self, _release, self._generation, self.k)
         self._initial_CF: tuple[np.ndarray, np.ndarray] | None = None
+        self._initial_jp: np.ndarray | None = None
         self.rollouts = 0
         self._set_constants()
         self.reset(particles)
@@ -463,6 +666,7 @@ class Simulator:
             self.timestep = time_step(self.scene, particles)
             self.k.dt[None] = self.timestep.dt
             self._initial_CF = None
+            self._initial_jp = None
         p, r, k = self.particles, self.np_real, self.k
         self._put(k.vol, p.volume.astype(r))
         self._put(k.E, p.youngs_modulus.astype(r))
@@ -472,20 +676,30 @@ class Simulator:
         self._put(k.muscle, (p.muscle if self.n_actuators else np.zeros((self.n, 1))).astype(r))
         self._put(k.fiber, p.fiber.astype(r))
         self._put(k.muscle_ratio, p.muscle_ratio.astype(r))
+        if k.has_params:
+            self._put(k.params, p.params.astype(r))
+        self._runs = _model_runs(p.material) if k.has_params else []
         tracked = p.robot if p.robot.any() else np.ones(self.n, dtype=bool)
         self._probe_density = np.where(tracked, p.density, 0.0)  # mass of particle p = this * volume
         self._put(k.probe_w, self._probe_density.astype(r))
         C0, F0 = self._initial_CF if self._initial_CF is not None else \
             (np.zeros((self.n, 3, 3)), np.tile(np.eye(3), (self.n, 1, 1)))
         k._load_state(0, self.n, *(np.ascontiguousarray(a, dtype=r) for a in (p.x, p.v, C0, F0)))
+        if k.has_jp:
+            k._load_jp(0, self.n, (np.ones(self.n) if self._initial_jp is None else self._initial_jp).astype(r))
         self.frame = 0
         self._slot = 0
 
-    def set_initial_state(self, x=None, v=None, C=None, F=None) -> None:
+    def set_initial_state(self, x=None, v=None, C=None, F=None, Jp=None) -> None:
         """Replace parts of the initial state (numpy, live particles only) and reset to it.
 
-        Positions and velocities default to the particles'; C to zero and F to identity.
+        Positions and velocities default to the particles'; C to zero, F to identity and the
+        plastic volume ratio `Jp` (snow only) to one.
         """
+        if Jp is not None:
+            if not self.k.has_jp:
+                raise ValueError("Jp is state only in scenes with snow")
+            self._initial_jp = np.asarray(Jp, dtype=np.float64).reshape(self.n)
         p = self.particles
         for name, value in (("x", x), ("v", v)):
             if value is not None:
@@ -529,6 +743,10 @@ class Simulator:
         else:
             self.k._bounds(s, self.n)
         self.k._clear_grid()
+        for model, start, end in self._runs:
+            if model in HENCKY_PLASTIC:
+                self.k._eigen_frames(s, start, end)
+            self.k._constitutive_update(model, s, so, start, end)
         self.k._p2g(s, so, t, self.n)
         self.k._grid_op()
 
@@ -538,7 +756,11 @@ class Simulator:
         self.k._clear_grid_grad()
         self.k._g2p.grad(s, s + 1, self.n)
         self.k._grid_op.grad()
+        if self.k.has_params:
+            self.k.tau.grad.fill(0)
         self.k._p2g.grad(s, s + 1, t, self.n)
+        for model, start, end in self._runs:
+            self.k._constitutive_update.grad(model, s, s + 1, start, end)
 
     def _guard(self, slot: int, substep: int) -> None:
         """Stop with a clear error if the state went non-finite, left the grid or broke CFL."""
@@ -589,6 +811,24 @@ class Simulator:
         self.k._save_state(self._slot if slot is None else slot, self.n, *out)
         return out
 
+    def plastic_volume_ratio(self, slot: int | None = None) -> np.ndarray:
+        """Snow's J_p per particle (1 = uncompacted; < 1 compacted, hence hardened); ones without snow."""
+        if not self.k.has_jp:
+            return np.ones(self.n)
+        out = np.empty(self.n, self.np_real)
+        self.k._save_jp(self._slot if slot is None else slot, self.n, out)
+        out[self.particles.material != ID["snow"]] = 1.0  # only snow particles keep J_p up to date
+        return out
+
+    def _state(self, slot: int) -> tuple[np.ndarray, ...]:
+        """Everything a checkpoint must hold: (x, v, C, F) and, with snow, J_p."""
+        return self.particles_state(slot) + ((self.plastic_volume_ratio(slot),) if self.k.has_jp else ())
+
+    def _load(self, slot: int, state: tuple[np.ndarray, ...]) -> None:
+        self.k._load_state(slot, self.n, *state[:4])
+        if self.k.has_jp:
+            self.k._load_jp(slot, self.n, state[4])
+
     # ------------------------------------------------------------------ differentiable rollout
     def rollout(self, actions: np.ndarray, checkpoint_every: int | None = None) -> Rollout:
         """Run len(actions) frames from the initial state, storing checkpoints for `backward`.
@@ -620,7 +860,7 @@ class Simulator:
         self._checkpoints = []
         self.k._probe(0, 0, self.n)
         for g0 in range(0, total, S):
-            self._checkpoints.append(self.particles_state(0))
+            self._checkpoints.append(self._state(0))
             L = min(S, total - g0)
             for s in range(L):
                 g = g0 + s
@@ -665,18 +905,21 @@ class Simulator:
             field.grad.from_numpy(full)
         zeros33 = np.zeros((n, 3, 3), r)
         carry = (np.ascontiguousarray(np.zeros((n, 3)) if x is None else x, dtype=r),
-                 np.ascontiguousarray(np.zeros((n, 3)) if v is None else v, dtype=r), zeros33, zeros33)
+                 np.ascontiguousarray(np.zeros((n, 3)) if v is None else v, dtype=r), zeros33, zeros33,
+                 np.zeros(n, r))
         total = T * spf
         starts = list(range(0, total, S))
         for k in reversed(range(len(starts))):
             g0 = starts[k]
             L = min(S, total - g0)
-            self.k._load_state(0, n, *self._checkpoints[k])
+            self._load(0, self._checkpoints[k])
             for s in range(L):  # recompute the segment's states
                 self._substep(s, s + 1, (g0 + s) // spf)
-            for f in (self.k.x, self.k.v, self.k.C, self.k.F):
+            for f in (self.k.x, self.k.v, self.k.C, self.k.F) + ((self.k.Jp,) if self.k.has_jp else ()):
                 f.grad.fill(0)
-            self.k._add_grad(L, n, *carry)
+            self.k._add_grad(L, n, *carry[:4])
+            if self.k.has_jp:
+                self.k._add_jp_grad(L, n, carry[4])
             for s in reversed(range(L)):
                 g = g0 + s
                 if (g + 1) % spf == 0:
@@ -684,8 +927,11 @@ class Simulator:
                 self._substep_grad(s, g // spf)
             if g0 == 0:
                 self.k._probe.grad(0, 0, n)
-            carry = (np.empty((n, 3), r), np.empty((n, 3), r), np.empty((n, 3, 3), r), np.empty((n, 3, 3), r))
-            self.k._save_grad(0, n, *carry)
+            carry = (np.empty((n, 3), r), np.empty((n, 3), r), np.empty((n, 3, 3), r), np.empty((n, 3, 3), r),
+                     np.zeros(n, r))
+            self.k._save_grad(0, n, *carry[:4])
+            if self.k.has_jp:
+                self.k._save_jp_grad(0, n, carry[4])
         K = self.n_actuators
         grads = Gradients(
             actions=self.k.act.grad.to_numpy()[:T, :K].astype(np.float64),

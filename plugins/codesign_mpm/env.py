@@ -1,7 +1,10 @@
-"""Locomotion environments (SoftZoo's land biomes): a box-shaped robot workspace on terrain.
+"""Locomotion environments (SoftZoo's biomes): a box-shaped robot workspace on terrain.
 
-The physics lives in `codesign_mpm.engine`; this module only turns a recipe config into a
-`Scene`, a design into particles, and simulator state into observations and rewards.
+Construction follows the paper: terrain, then the robot placed on it, then the ground cover
+(sand, snow, clay, mud, water) laid on the terrain as a layer, leaving out the grid cells the
+robot's particles occupy. The physics lives in `codesign_mpm.engine`; this module only turns
+a recipe config into a `Scene`, a design into particles, and simulator state into
+observations and rewards.
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ import numpy as np
 
 from codesign.errors import RecipeError
 from codesign.interfaces import DesignFields, DesignSpace, Environment, StepResult
-from codesign_mpm.config import EnvironmentPreset, LocomotionConfig
+from codesign_mpm.config import CoverConfig, EnvironmentPreset, LocomotionConfig
 from codesign_mpm.engine import Simulator
 from codesign_mpm.sampling import Particles, build_particles
 from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
@@ -43,10 +46,20 @@ def _check_config(config: LocomotionConfig) -> None:
         raise _problem("task.direction", "must be a non-zero vector")
 
 
+def cover_body(cover: CoverConfig) -> BodySpec:
+    """The ground-cover layer of an environment as a scene body."""
+    material = MaterialSpec(**{name: getattr(cover, name) for name in MaterialSpec.__dataclass_fields__
+                               if name != "kind"}, kind=cover.kind)
+    return BodySpec(name=f"cover ({cover.kind})", shape=ShapeSpec(kind="layer", thickness=cover.thickness),
+                    material=material, particles_per_cell=cover.particles_per_cell)
+
+
 def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
-    """The scene of a locomotion config: one actuated box robot resting on the terrain."""
+    """The scene of a locomotion config: an actuated box robot on the terrain, then the cover."""
     t, r = config.terrain, config.robot
-    return Scene(
+    cover = preset.cover if config.cover is None else config.cover
+    on_cover = r.rest_on == "cover" and cover.kind != "none"
+    scene = Scene(
         size=list(config.size),
         dx=config.dx,
         terrain=TerrainSpec(kind=t.kind, height=t.height, amplitude=t.amplitude, frequency=t.frequency,
@@ -58,6 +71,7 @@ def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
                                   density=r.density),
             center=[r.position[0], t.height, r.position[1]],
             rest_on_terrain=True,
+            rest_offset=cover.thickness if on_cover else 0.0,
             particles_per_cell=r.particles_per_cell,
             muscles=MuscleSpec(groups=list(r.muscle_groups), fiber=[1.0, 0.0, 0.0]),
             robot=True,
@@ -66,6 +80,22 @@ def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
         dtype=config.dtype,
         arch=config.arch,
     )
+    if cover.kind != "none":
+        scene.bodies.append(cover_body(cover))
+    return scene
+
+
+def _subset(particles: Particles, keep: np.ndarray) -> Particles:
+    return Particles(**{name: getattr(particles, name)[keep] for name in Particles.__dataclass_fields__})
+
+
+def _concat(first: Particles, second: Particles) -> Particles:
+    """Particles of both sets, in order; the cover has no actuators, so its muscle rows are zero."""
+    if second.n == 0:
+        return first
+    second = replace(second, muscle=np.zeros((second.n, first.n_actuators)))
+    return Particles(**{name: np.concatenate([getattr(first, name), getattr(second, name)])
+                        for name in Particles.__dataclass_fields__})
 
 
 def _numpy(value: Any) -> np.ndarray:
@@ -83,7 +113,9 @@ class LocomotionEnv(Environment):
     ``movement_speed`` = mean velocity . direction; ``turning`` = mean velocity along each
     particle's counter-clockwise tangent about the up axis through the centre of mass.
 
-    `base_particles` is the whole workspace; each design keeps, weighs and stiffens a subset.
+    `base_particles` is the robot's whole workspace; each design keeps, weighs and stiffens a
+    subset. `cover_particles` (the ground cover, possibly none) follow the robot's in the
+    simulator and are the same for every design.
     """
 
     def __init__(self, config: LocomotionConfig, preset: EnvironmentPreset) -> None:
@@ -91,9 +123,11 @@ class LocomotionEnv(Environment):
         self.config = config
         self.scene = make_scene(config, preset)
         try:
-            self.base_particles: Particles = build_particles(self.scene)
+            everything = build_particles(self.scene)
         except SceneError as exc:
             raise RecipeError(f"invalid recipe: environment: the robot does not fit the scene: {exc}") from exc
+        self.base_particles: Particles = _subset(everything, everything.robot)
+        self.cover_particles: Particles = _subset(everything, ~everything.robot)
         k = self.base_particles.n_actuators
         self.design_space = DesignSpace(points=self.base_particles.x.copy(), n_actuators=k,
                                         default_stiffness=config.robot.youngs_modulus)
@@ -103,7 +137,7 @@ class LocomotionEnv(Environment):
         self.control_dt = config.frame_dt
         self.direction = np.asarray(config.task.direction, dtype=np.float64)
         self.direction /= np.linalg.norm(self.direction)
-        self.particles: Particles = self.base_particles
+        self.particles: Particles = _concat(self.base_particles, self.cover_particles)
         self.sim: Simulator | None = None
         self.t = 0
 
@@ -114,14 +148,14 @@ class LocomotionEnv(Environment):
         keep = occupancy >= OCCUPANCY_THRESHOLD
         if not keep.any():
             raise ValueError(f"the design leaves no particle with occupancy >= {OCCUPANCY_THRESHOLD}")
-        subset = Particles(**{name: getattr(base, name)[keep] for name in Particles.__dataclass_fields__})
-        return replace(
-            subset,
-            volume=subset.volume * occupancy[keep],
+        robot = replace(
+            _subset(base, keep),
+            volume=base.volume[keep] * occupancy[keep],
             youngs_modulus=_numpy(design.stiffness).reshape(base.n)[keep],
             muscle=_numpy(design.muscle).reshape(base.muscle.shape)[keep],
             fiber=_numpy(design.fiber).reshape(base.n, 3)[keep],
         )
+        return _concat(robot, self.cover_particles)
 
     def reset(self, design: DesignFields | None = None, seed: int | None = None) -> np.ndarray:
         """Load ``design`` (or keep the last one); the task is deterministic, so ``seed`` is unused."""
@@ -136,7 +170,9 @@ class LocomotionEnv(Environment):
         else:
             self.sim.reset(particles)
         self.t = 0
-        self._mass = particles.volume * particles.density
+        robot = particles.robot
+        self._n_robot = int(robot.sum())
+        self._mass = particles.volume[robot] * particles.density[robot]
         return self._observe()[0]
 
     def step(self, action: np.ndarray) -> StepResult:
@@ -156,9 +192,9 @@ class LocomotionEnv(Environment):
         return StepResult(observation, reward, self.t >= self.horizon, {"com": com.copy()})
 
     def _observe(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(observation, robot positions, robot velocities); the robot is the only body."""
+        """(observation, robot positions, robot velocities); the robot's particles come first."""
         x, v, _, _ = self.sim.particles_state()
-        x, v = x.astype(np.float64), v.astype(np.float64)
+        x, v = x[:self._n_robot].astype(np.float64), v[:self._n_robot].astype(np.float64)
         weights = self._mass / self._mass.sum()
         return np.concatenate([weights @ x, weights @ v, self.direction]), x, v
 

@@ -2,11 +2,27 @@
 
 Each model has a small integer id used inside the kernels; a scene compiles only the models
 its bodies use (see `Simulator`). Lamé parameters follow the usual isotropic relations.
+
+Models beyond the elastic ones read a few extra per-particle parameters, packed into a
+vector of `N_PARAMS` numbers whose meaning depends on the model (`pack_params`):
+
+=========  ==========================================================================
+sand       Drucker-Prager in Hencky strain (Klar et al. 2016): [alpha, cohesion]
+snow       Stomakhin et al. 2013: [theta_c, theta_s, hardening xi, max stiffening]
+clay       von Mises in Hencky strain: [yield stress]
+mud        Bingham-like saturated soil (von Mises + viscosity): [yield stress, viscosity]
+water      weakly compressible fluid: [bulk modulus, viscosity]
+=========  ==========================================================================
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+N_PARAMS = 4
+"""Per-particle parameters of the non-elastic models (see the module docstring)."""
+MIN_HARDENING = 0.1
+"""Snow: the hardening factor exp(xi (1 - J_p)) is kept in [MIN_HARDENING, max_hardening]."""
 
 
 @dataclass(frozen=True)
@@ -14,6 +30,8 @@ class MaterialModel:
     id: int
     name: str
     description: str
+    plastic: bool = False
+    """True if the model changes F beyond (I + dt C) F (return mapping or fluid reset)."""
 
 
 MATERIALS: dict[str, MaterialModel] = {
@@ -22,8 +40,14 @@ MATERIALS: dict[str, MaterialModel] = {
         MaterialModel(0, "neo_hookean", "compressible neo-Hookean elastomer (no SVD; robots' default)"),
         MaterialModel(1, "corotated", "fixed-corotated elasticity (needs a polar decomposition)"),
         MaterialModel(2, "stvk", "St. Venant-Kirchhoff (Green strain; softens under strong compression)"),
+        MaterialModel(3, "sand", "Drucker-Prager granular material in Hencky strain; no tension", True),
+        MaterialModel(4, "snow", "Stomakhin snow: clamped principal stretches, hardening with compaction", True),
+        MaterialModel(5, "clay", "von Mises elastoplastic (Hencky); permanent set above the yield stress", True),
+        MaterialModel(6, "water", "weakly compressible fluid, pressure K (1 - J), optional viscosity", True),
+        MaterialModel(7, "mud", "saturated soil: nearly incompressible, von Mises yield plus viscosity", True),
     )
 }
+ID = {name: m.id for name, m in MATERIALS.items()}
 
 
 def material_names() -> list[str]:
@@ -37,6 +61,27 @@ def lame(youngs_modulus: float, poisson_ratio: float) -> tuple[float, float]:
     return mu, lam
 
 
+def drucker_prager_alpha(friction_angle_deg: float) -> float:
+    """Cone slope alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi)) (Klar et al. 2016, eq. 27)."""
+    s = math.sin(math.radians(friction_angle_deg))
+    return math.sqrt(2 / 3) * 2 * s / (3 - s)
+
+
+def pack_params(kind: str, friction_angle: float = 30.0, cohesion: float = 0.0, yield_stress: float = 200.0,
+                critical_compression: float = 2.5e-2, critical_stretch: float = 7.5e-3, hardening: float = 10.0,
+                max_hardening: float = 10.0, bulk_modulus: float = 1.0e5, viscosity: float = 0.0
+                ) -> tuple[float, ...]:
+    """The `N_PARAMS` per-particle numbers a model reads (zeros for elastic models)."""
+    values: tuple[float, ...] = {
+        "sand": (drucker_prager_alpha(friction_angle), cohesion),
+        "snow": (critical_compression, critical_stretch, hardening, max_hardening),
+        "clay": (yield_stress,),
+        "mud": (yield_stress, viscosity),
+        "water": (bulk_modulus, viscosity),
+    }.get(kind, ())
+    return values + (0.0,) * (N_PARAMS - len(values))
+
+
 def wave_speed(youngs_modulus: float, poisson_ratio: float, density: float,
                muscle_stiffness: float = 0.0) -> float:
     """Fastest elastic (P-)wave speed, sqrt((lambda + 2 mu + 8 s) / rho).
@@ -46,3 +91,21 @@ def wave_speed(youngs_modulus: float, poisson_ratio: float, density: float,
     """
     mu, lam = lame(youngs_modulus, poisson_ratio)
     return math.sqrt((lam + 2 * mu + 8 * muscle_stiffness) / density)
+
+
+def model_wave_speed(model: int, youngs_modulus: float, poisson_ratio: float, density: float,
+                     muscle_stiffness: float, params: tuple[float, ...]) -> float:
+    """Fastest wave speed a particle of this model can carry, for the CFL condition.
+
+    Water: sqrt(K / rho) from its bulk modulus. Snow: the elastic speed at the largest
+    hardening factor allowed (`max_hardening` scales both Lamé parameters).
+    """
+    if model == ID["water"]:
+        return math.sqrt(params[0] / density)
+    stiffening = max(params[3], 1.0) if model == ID["snow"] else 1.0
+    return wave_speed(youngs_modulus * stiffening, poisson_ratio, density, muscle_stiffness)
+
+
+def viscosity(model: int, params: tuple[float, ...]) -> float:
+    """Dynamic viscosity of a particle (0 for the models without a viscous term)."""
+    return params[1] if model in (ID["water"], ID["mud"]) else 0.0

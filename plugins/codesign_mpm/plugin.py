@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Optional
 
 from codesign.hookspecs import hookimpl
 from codesign.registry import PluginRegistrar
-from codesign_mpm.config import PRESETS, LocomotionConfig
+from codesign_mpm.config import PRESET_CONFIGS, PRESETS, LocomotionConfig
 
 if TYPE_CHECKING:
     import typer
@@ -34,8 +34,7 @@ class PresetEnvironment:
 @hookimpl
 def codesign_register(registry: PluginRegistrar) -> None:
     for name, preset in PRESETS.items():
-        registry.add("environment", name, PresetEnvironment(name), "codesign_mpm.config:LocomotionConfig",
-                     preset.description)
+        registry.add("environment", name, PresetEnvironment(name), PRESET_CONFIGS[name], preset.description)
 
 
 @hookimpl
@@ -70,6 +69,26 @@ def codesign_cli(app: typer.Typer) -> None:
 
     bench = typer.Typer(help="Benchmarks that print JSON lines to compare run to run.", no_args_is_help=True)
     app.add_typer(bench, name="bench")
+
+    @bench.command("environments")
+    def bench_environments(
+        scale: list[str] = typer.Option(["small"], "--scale", help="small (dx 1/64, about 18k particles) and/or "
+                                        "paper (dx 1/128, about 144k particles, 130k in the ocean); repeatable."),
+        env: list[str] = typer.Option(list(PRESETS), "--env", help="Environment preset(s); repeatable."),
+    ) -> None:
+        """Forward throughput of one scene per environment: particle-substeps/s, substeps per
+        control step and ms per substep (the old code, paper scale: about 245 ms, 41 substeps)."""
+        import json
+
+        from codesign_mpm.bench import ENV_SCALES, run_environment_bench
+
+        for s in scale:
+            if s not in ENV_SCALES:
+                raise typer.BadParameter(f"--scale {s!r}: choose from {', '.join(ENV_SCALES)}")
+        for name in env:
+            if name not in PRESETS:
+                raise typer.BadParameter(f"--env {name!r}: choose from {', '.join(PRESETS)}")
+        run_environment_bench(scale, env, lambda record: typer.echo(json.dumps(record)))
 
     @bench.command("engine")
     def bench_engine(

@@ -3,6 +3,10 @@
 Each particle stands for the shape's volume divided by the number of particles actually
 seeded, so mass and stiffness do not change with the sampling density or with how the
 lattice happens to fit the shape (the old code used dx^3 for every particle).
+
+Layers (ground cover: sand, snow, water, ...) are sampled after every other body, as in the
+paper: on the terrain, up to their thickness, leaving out the grid cells that the other
+bodies' particles occupy, so no two bodies overlap.
 """
 from __future__ import annotations
 
@@ -12,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from codesign.geometry import grid_partition
-from codesign_mpm.materials import MATERIALS
+from codesign_mpm.materials import MATERIALS, pack_params
 from codesign_mpm.scene import BodySpec, Scene, SceneError, ShapeSpec
 from codesign_mpm.terrain import height_map
 
@@ -31,6 +35,7 @@ class Particles:
     muscle: np.ndarray  # (N,K) membership r_p
     fiber: np.ndarray  # (N,3) unit fibre direction f_p
     muscle_ratio: np.ndarray  # (N,) muscle stiffness s_p / E_p
+    params: np.ndarray  # (N, N_PARAMS) parameters of the non-elastic models (materials.pack_params)
     body: np.ndarray  # (N,) index of the body in scene.bodies
     robot: np.ndarray  # (N,) bool
 
@@ -119,10 +124,21 @@ def rotation_matrix(degrees: list[float]) -> np.ndarray:
 
 
 def build_particles(scene: Scene) -> Particles:
-    """Sample every body of a (validated) scene; actuators of all bodies are numbered in order."""
-    parts = []
+    """Sample every body of a (validated) scene; actuators of all bodies are numbered in order.
+
+    Particles keep the order of `scene.bodies`; layers are sampled last (they fill the space
+    the others leave) but still stored in their place in that order.
+    """
+    by_body: dict[int, dict[str, np.ndarray]] = {}
     for i, body in enumerate(scene.bodies):
-        parts.append(_body_particles(scene, i, body))
+        if body.shape.kind != "layer":
+            by_body[i] = _body_particles(scene, i, body)
+    occupied = np.zeros(scene.grid_shape, dtype=bool)
+    for i, body in enumerate(scene.bodies):
+        if body.shape.kind == "layer":
+            _occupy(occupied, [p["x"] for p in by_body.values()], scene.dx)
+            by_body[i] = _layer_particles(scene, i, body, occupied)
+    parts = [by_body[i] for i in range(len(scene.bodies))]
     k_total = sum(p["muscle"].shape[1] for p in parts)
     start = 0
     for p in parts:
@@ -149,7 +165,7 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
         ij = np.clip(np.round((offsets[:, [0, 2]] + center[[0, 2]]) / scene.dx).astype(int), 0,
                      np.asarray(heights.shape) - 1)
         ground = heights[ij[:, 0], ij[:, 1]].max()
-        center[1] = ground + scene.dx - offsets[:, 1].min()
+        center[1] = ground + body.rest_offset + scene.dx - offsets[:, 1].min()
     x = offsets + center
     margin = scene.dx * scene.boundary_cells
     lo_ok = (x >= margin).all()
@@ -159,8 +175,6 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
                          f"{x.min(0).round(4).tolist()} to {x.max(0).round(4).tolist()}, outside the "
                          f"domain interior [{margin:.4g}, size - {margin:.4g}] for size {list(scene.size)}")
     n = len(x)
-    vol = total_volume / n
-    mat = body.material
     if body.muscles is not None:
         groups = list(body.muscles.groups)
         muscle = np.eye(int(np.prod(groups)))[grid_partition(local, groups)]
@@ -169,10 +183,56 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
         ratio = body.muscles.stiffness_ratio
     else:
         muscle, fiber, ratio = np.zeros((n, 0)), np.tile([1.0, 0, 0], (n, 1)), 0.0
+    return _fields(i, body, x, total_volume / n, muscle, fiber, ratio)
+
+
+def _fields(i: int, body: BodySpec, x: np.ndarray, volume: float, muscle: np.ndarray, fiber: np.ndarray,
+            ratio: float) -> dict[str, np.ndarray]:
+    n, mat = len(x), body.material
+    params = pack_params(mat.kind, mat.friction_angle, mat.cohesion, mat.yield_stress, mat.critical_compression,
+                         mat.critical_stretch, mat.hardening, mat.max_hardening, mat.bulk_modulus, mat.viscosity)
     return dict(
-        x=x, v=np.tile(np.asarray(body.velocity, dtype=float), (n, 1)), volume=np.full(n, vol),
+        x=x, v=np.tile(np.asarray(body.velocity, dtype=float), (n, 1)), volume=np.full(n, volume),
         density=np.full(n, mat.density), youngs_modulus=np.full(n, mat.youngs_modulus),
         poisson_ratio=np.full(n, mat.poisson_ratio),
         material=np.full(n, MATERIALS[mat.kind].id, dtype=np.int32), muscle=muscle, fiber=fiber,
-        muscle_ratio=np.full(n, ratio), body=np.full(n, i, dtype=np.int32),
+        muscle_ratio=np.full(n, ratio), params=np.tile(params, (n, 1)), body=np.full(n, i, dtype=np.int32),
         robot=np.full(n, body.robot, dtype=bool))
+
+
+def _cells(x: np.ndarray, dx: float, shape: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+    cells = np.clip(np.floor(x / dx).astype(np.int64), 0, np.asarray(shape) - 1)
+    return cells[:, 0], cells[:, 1], cells[:, 2]
+
+
+def _occupy(occupied: np.ndarray, positions: list[np.ndarray], dx: float) -> None:
+    """Mark the grid cells that hold at least one of the given particles."""
+    for x in positions:
+        occupied[_cells(x, dx, occupied.shape)] = True
+
+
+def _layer_particles(scene: Scene, i: int, body: BodySpec, occupied: np.ndarray) -> dict[str, np.ndarray]:
+    """A layer of `thickness` on the terrain, wall to wall, minus occupied cells.
+
+    The walls are the outermost `boundary_cells` nodes, so the last wall node, at
+    (boundary_cells - 1) dx from the edge, is where material comes to rest against them.
+    """
+    spacing = scene.dx / round(body.particles_per_cell ** (1 / 3))
+    margin = scene.dx * (scene.boundary_cells - 1)
+    heights = np.maximum(height_map(scene), margin)
+    size = np.asarray(scene.size, dtype=float)
+    top = heights.max() + body.shape.thickness
+    if top > size[1] - margin:
+        raise SceneError(f"bodies[{i}].shape.thickness = {body.shape.thickness!r} is invalid: the layer "
+                         f"reaches y = {top:.4g}, above the domain interior (size - {margin:.4g})")
+    x = lattice(np.array([margin, heights.min(), margin]), np.array([size[0] - margin, top, size[2] - margin]),
+                spacing)
+    ij = np.clip(np.round(x[:, [0, 2]] / scene.dx).astype(int), 0, np.asarray(heights.shape) - 1)
+    ground = heights[ij[:, 0], ij[:, 1]]
+    x = x[(x[:, 1] > ground) & (x[:, 1] < ground + body.shape.thickness)]
+    x = x[~occupied[_cells(x, scene.dx, occupied.shape)]]
+    if len(x) == 0:
+        raise SceneError(f"bodies[{i}].shape = {body.shape!r} is invalid: the layer holds no particle "
+                         f"(no free space above the terrain at dx={scene.dx})")
+    n = len(x)
+    return _fields(i, body, x, spacing ** 3, np.zeros((n, 0)), np.tile([1.0, 0, 0], (n, 1)), 0.0)

@@ -12,7 +12,7 @@ from typing import List, Optional
 
 from codesign_mpm.materials import MATERIALS, material_names
 
-SHAPE_KINDS = ("box", "sphere", "ellipsoid", "capsule", "mesh", "points", "voxels")
+SHAPE_KINDS = ("box", "sphere", "ellipsoid", "capsule", "mesh", "points", "voxels", "layer")
 TERRAIN_KINDS = ("none", "flat", "incline", "perlin")
 DTYPES = ("float32", "float64")
 ARCHS = ("cpu", "cuda", "gpu", "vulkan", "metal")
@@ -34,16 +34,30 @@ class ShapeSpec:
     file: Optional[str] = None  # mesh (anything trimesh loads), points (.npy/.ply/.xyz), voxels (.npy bool)
     scale: float = 1.0  # mesh / points: the file's longest extent becomes `scale` scene units
     voxel_size: float = 0.01  # voxels: edge of one voxel in scene units
+    thickness: float = 0.05  # layer: depth of material laid on the terrain (the body's centre is unused)
 
 
 @dataclass
 class MaterialSpec:
-    """A constitutive model by name with its parameters (scene units)."""
+    """A constitutive model by name with its parameters (scene units).
+
+    E and nu set the elastic response of every model except water (which uses
+    `bulk_modulus`); the other fields matter only to the models named in their comment.
+    """
 
     kind: str = "neo_hookean"
     youngs_modulus: float = 1.0e4
     poisson_ratio: float = 0.2
     density: float = 1.0e3
+    friction_angle: float = 30.0  # sand: Drucker-Prager friction angle, degrees
+    cohesion: float = 0.0  # sand: tensile strength (mean Kirchhoff stress at the cone apex)
+    yield_stress: float = 200.0  # clay, mud: von Mises yield stress (mud: undrained shear strength)
+    critical_compression: float = 2.5e-2  # snow: theta_c, principal stretches stay >= 1 - theta_c
+    critical_stretch: float = 7.5e-3  # snow: theta_s, principal stretches stay <= 1 + theta_s
+    hardening: float = 10.0  # snow: xi, stiffness grows as exp(xi (1 - J_p)) with compaction
+    max_hardening: float = 10.0  # snow: bound on that factor (keeps the step and gradients bounded)
+    bulk_modulus: float = 1.0e5  # water: K, pressure K (1 - J); sound speed sqrt(K / rho)
+    viscosity: float = 0.0  # water, mud: dynamic viscosity
 
 
 @dataclass
@@ -67,6 +81,7 @@ class BodySpec:
     center: List[float] = field(default_factory=lambda: [0.5, 0.5, 0.5])
     rotation: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # degrees about x, then y, then z
     rest_on_terrain: bool = False  # move the body down/up so it sits one cell above the terrain
+    rest_offset: float = 0.0  # with rest_on_terrain: extra height (e.g. the thickness of a layer to rest on)
     velocity: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     particles_per_cell: int = 8  # a cube number: 1, 8, 27 or 64 particles on a regular lattice
     muscles: Optional[MuscleSpec] = None
@@ -170,6 +185,10 @@ def _validate_body(key: str, body: BodySpec) -> None:
         _fail(f"{key}.shape.radius", shape.radius, "must be > 0")
     if shape.kind == "capsule" and not shape.length >= 0:
         _fail(f"{key}.shape.length", shape.length, "must be >= 0")
+    if shape.kind == "layer" and not shape.thickness > 0:
+        _fail(f"{key}.shape.thickness", shape.thickness, "must be > 0")
+    if shape.kind == "layer" and body.muscles is not None:
+        _fail(f"{key}.muscles", body.muscles, "a layer cannot have muscles (null)")
     if shape.kind in ("mesh", "points", "voxels") and not shape.file:
         _fail(f"{key}.shape.file", shape.file, f"a {shape.kind} shape needs a file path")
     if not shape.scale > 0 or not shape.voxel_size > 0:
@@ -182,6 +201,7 @@ def _validate_body(key: str, body: BodySpec) -> None:
         _fail(f"{key}.material.poisson_ratio", mat.poisson_ratio, "must be in (-1, 0.5)")
     if not mat.density > 0:
         _fail(f"{key}.material.density", mat.density, "must be > 0")
+    _validate_plasticity(f"{key}.material", mat)
     _check_vec(f"{key}.center", body.center)
     _check_vec(f"{key}.velocity", body.velocity)
     _check_vec(f"{key}.rotation", body.rotation)
@@ -197,3 +217,21 @@ def _validate_body(key: str, body: BodySpec) -> None:
             _fail(f"{key}.muscles.fiber", list(m.fiber), "a non-zero direction")
         if m.stiffness_ratio < 0:
             _fail(f"{key}.muscles.stiffness_ratio", m.stiffness_ratio, "must be >= 0")
+
+
+def _validate_plasticity(key: str, mat: MaterialSpec) -> None:
+    """Ranges of the non-elastic parameters; checked whatever the kind, so typos surface early."""
+    checks = (
+        ("friction_angle", mat.friction_angle, 0 <= mat.friction_angle <= 80, "must be in [0, 80] degrees"),
+        ("cohesion", mat.cohesion, mat.cohesion >= 0, "must be >= 0"),
+        ("yield_stress", mat.yield_stress, mat.yield_stress > 0, "must be > 0"),
+        ("critical_compression", mat.critical_compression, 0 < mat.critical_compression < 1, "must be in (0, 1)"),
+        ("critical_stretch", mat.critical_stretch, mat.critical_stretch > 0, "must be > 0"),
+        ("hardening", mat.hardening, mat.hardening >= 0, "must be >= 0"),
+        ("max_hardening", mat.max_hardening, 1 <= mat.max_hardening <= 100, "must be in [1, 100]"),
+        ("bulk_modulus", mat.bulk_modulus, mat.bulk_modulus > 0, "must be > 0"),
+        ("viscosity", mat.viscosity, mat.viscosity >= 0, "must be >= 0"),
+    )
+    for name, value, ok, allowed in checks:
+        if not (ok and math.isfinite(value)):
+            _fail(f"{key}.{name}", value, allowed)

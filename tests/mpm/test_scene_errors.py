@@ -21,6 +21,16 @@ def scene(**body) -> Scene:
     (dict(material=MaterialSpec(poisson_ratio=0.5)), r"poisson_ratio = 0\.5.*\(-1, 0\.5\)"),
     (dict(shape=ShapeSpec(kind="blob")), r"shape\.kind = 'blob'.*box, sphere"),
     (dict(particles_per_cell=6), r"particles_per_cell = 6.*cube number"),
+    (dict(material=MaterialSpec(kind="sand", friction_angle=95.0)),
+     r"bodies\[0\]\.material\.friction_angle = 95\.0.*\[0, 80\]"),
+    (dict(material=MaterialSpec(kind="sand", cohesion=-1.0)), r"material\.cohesion = -1\.0.*>= 0"),
+    (dict(material=MaterialSpec(kind="clay", yield_stress=0.0)), r"material\.yield_stress = 0\.0.*> 0"),
+    (dict(material=MaterialSpec(kind="snow", critical_compression=1.5)),
+     r"material\.critical_compression = 1\.5.*\(0, 1\)"),
+    (dict(material=MaterialSpec(kind="snow", max_hardening=0.5)), r"material\.max_hardening = 0\.5.*\[1, 100\]"),
+    (dict(material=MaterialSpec(kind="water", bulk_modulus=-1e5)), r"material\.bulk_modulus = -100000\.0.*> 0"),
+    (dict(material=MaterialSpec(kind="mud", viscosity=float("nan"))), r"material\.viscosity = nan.*>= 0"),
+    (dict(shape=ShapeSpec(kind="layer", thickness=0.0)), r"shape\.thickness = 0\.0.*> 0"),
 ])
 def test_invalid_bodies_name_key_value_and_allowed(body, pattern):
     with pytest.raises(SceneError, match=pattern):
@@ -105,3 +115,33 @@ def test_voxel_and_point_cloud_shapes(tmp_path):
     s.bodies[0].shape.file = str(tmp_path / "missing.npy")
     with pytest.raises(SceneError, match=r"shape\.file = .*missing\.npy.*no such file"):
         build_particles(s)
+
+
+def test_time_step_accounts_for_water_bulk_modulus_and_snow_hardening():
+    """c = sqrt(K / rho) for water; snow at its largest hardening, sqrt(max_hardening) faster."""
+    def stable(**material):
+        s = scene(material=MaterialSpec(**material))
+        return time_step(s, build_particles(s)).stable_dt
+
+    s = scene()
+    assert stable(kind="water", bulk_modulus=4e5) == pytest.approx(s.cfl * s.dx / math.sqrt(4e5 / 1e3), rel=1e-12)
+    assert stable(kind="snow", max_hardening=9.0) == pytest.approx(stable(kind="neo_hookean") / 3, rel=1e-12)
+    # a viscous material also respects the explicit diffusion limit rho dx^2 / (6 eta)
+    assert stable(kind="mud", viscosity=1e3) == pytest.approx(s.cfl * 1e3 * s.dx ** 2 / 6e3, rel=1e-12)
+
+
+def test_a_layer_fills_the_terrain_around_other_bodies_without_overlap():
+    s = Scene(dx=1 / 32, terrain=TerrainSpec(kind="perlin", height=0.1, amplitude=0.05),
+              bodies=[BodySpec(center=[0.5, 0.0, 0.5], rest_on_terrain=True),
+                      BodySpec(shape=ShapeSpec(kind="layer", thickness=0.06), material=MaterialSpec(kind="sand"))])
+    p = build_particles(s)
+    body, layer = p.x[p.body == 0], p.x[p.body == 1]
+    cells = {tuple(c) for c in np.floor(body / s.dx).astype(int)}
+    assert not cells & {tuple(c) for c in np.floor(layer / s.dx).astype(int)}
+    from codesign_mpm.terrain import height_map
+
+    h = height_map(s)
+    ij = np.round(layer[:, [0, 2]] / s.dx).astype(int)
+    depth = layer[:, 1] - h[ij[:, 0], ij[:, 1]]
+    assert depth.min() > 0 and depth.max() < 0.06  # on the terrain, at most the thickness deep
+    assert np.allclose(p.volume[p.body == 1], (s.dx / 2) ** 3)  # 8 per cell, each its lattice cell

@@ -1,0 +1,146 @@
+"""The eight environment presets at test resolution (dx = 1/32): construction, forward,
+backward, and how robots interact with each ground cover."""
+import numpy as np
+import pytest
+
+from codesign_mpm.config import PRESET_CONFIGS, PRESETS, CoverConfig, RobotConfig, TerrainConfig
+from codesign_mpm.engine import Simulator
+from codesign_mpm.env import LocomotionEnv
+
+ENVIRONMENTS = ["ground", "ice", "desert", "snow", "clay", "wetland", "shallow_water", "ocean"]
+DX = 1 / 32
+
+
+def make_env(name: str, dtype: str = "float32", horizon: int = 50, **overrides) -> LocomotionEnv:
+    """The registered preset at test resolution; the terrain is raised above the wall band."""
+    config = PRESET_CONFIGS[name](dx=DX, horizon=horizon, dtype=dtype, terrain=TerrainConfig(
+        height=0.1, friction=PRESETS[name].friction), **overrides)
+    return LocomotionEnv(config, PRESETS[name])
+
+
+def test_every_paper_environment_is_registered_with_its_cover_in_the_config():
+    assert sorted(PRESETS) == sorted(ENVIRONMENTS)
+    kinds = {name: PRESET_CONFIGS[name]().cover.kind for name in ENVIRONMENTS}
+    assert kinds == {"ground": "none", "ice": "none", "desert": "sand", "snow": "snow", "clay": "clay",
+                     "wetland": "mud", "shallow_water": "water", "ocean": "water"}
+    assert PRESET_CONFIGS["ocean"]().terrain.friction == 0.0
+    assert PRESET_CONFIGS["ocean"]().robot.youngs_modulus == 1e5
+    assert PRESET_CONFIGS["ice"]().terrain.friction == 0.05
+
+
+@pytest.mark.parametrize("name", ["desert", "ocean"])
+def test_the_cover_is_laid_around_the_robot_without_overlap(name):
+    env = make_env(name)
+    robot, cover = env.base_particles, env.cover_particles
+    assert cover.n > 0 and not cover.robot.any()
+    robot_cells = {tuple(c) for c in np.floor(robot.x / DX).astype(int)}
+    cover_cells = {tuple(c) for c in np.floor(cover.x / DX).astype(int)}
+    assert not robot_cells & cover_cells
+    thickness = PRESET_CONFIGS[name]().cover.thickness
+    assert cover.x[:, 1].min() > 0.1 and cover.x[:, 1].max() < 0.1 + thickness
+    if name == "ocean":  # water covers the robot
+        assert cover.x[:, 1].max() > robot.x[:, 1].max()
+
+
+def random_actions(env, steps: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(-0.3, 0.3, size=(steps, env.action_dim))
+
+
+@pytest.mark.parametrize("name", ENVIRONMENTS)
+def test_fifty_control_steps_with_random_actions_stay_finite_and_move_the_robot(name):
+    env = make_env(name)
+    try:
+        start = env.reset()[:3]
+        for action in random_actions(env, 50):
+            result = env.step(action)
+        x, v, _, F = env.sim.particles_state()
+        assert np.isfinite(x).all() and np.isfinite(v).all() and np.isfinite(F).all()
+        assert np.linalg.norm(result.observation[:3] - start) > 1e-3  # about a tenth of a cell
+    finally:
+        env.close()
+
+
+T = 3  # frames of the differentiable rollout
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["desert", "snow", "clay", "wetland", "ocean"])
+def test_gradients_through_each_cover_are_finite_and_match_finite_differences(name):
+    """Backward through the plastic / fluid models in float64 (shallow water shares ocean's kernels)."""
+    env = make_env(name, dtype="float64")
+    sim = Simulator(env.scene, env.particles, requires_grad=True, max_frames=12, checkpoint_every=64)
+    actions = random_actions(env, T, seed=1)
+    robot = env.particles.robot
+    weights = np.random.default_rng(2).normal(size=(T + 1, 3))
+
+    def loss(a):
+        out = sim.rollout(a, checkpoint_every=7)
+        return float((weights * out.com_x).sum())
+
+    try:
+        loss(actions)
+        g = sim.backward(com_x=weights)
+        assert np.isfinite(g.actions).all() and np.isfinite(g.x0).all() and np.isfinite(g.v0).all()
+        assert np.abs(g.x0[~robot]).max() > 0, "the cover should influence the robot"
+        for index in [(0, 0), (T - 1, 3)]:
+            eps = 1e-6
+            plus, minus = actions.copy(), actions.copy()
+            plus[index] += eps
+            minus[index] -= eps
+            numeric = (loss(plus) - loss(minus)) / (2 * eps)
+            assert g.actions[index] == pytest.approx(numeric, rel=1e-4, abs=1e-8), index
+    finally:
+        sim.close()
+        env.close()
+
+
+def sink_depth(name: str, frames: int = 60) -> float:
+    """How far a robot (twice water's density) set on top of a deep (0.1) layer sinks, without acting."""
+    env = make_env(name, robot=RobotConfig(rest_on="cover", density=2e3),
+                   cover=CoverConfig(**{**vars(PRESET_CONFIGS[name]().cover), "thickness": 0.1}))
+    try:
+        start = env.reset()[1]
+        for _ in range(frames):
+            result = env.step(np.zeros(env.action_dim))
+        return start - result.observation[1]
+    finally:
+        env.close()
+
+
+@pytest.mark.slow
+def test_a_robot_sinks_into_deep_snow_and_mud_more_than_into_packed_sand():
+    sand, snow, mud = (sink_depth(name) for name in ("desert", "snow", "wetland"))
+    # measured (dx 1/32): sand 0.0066 (the drop into contact), snow 0.019, mud 0.040
+    assert sand < 0.3 * DX
+    assert snow > sand + 0.25 * DX and mud > sand + 0.75 * DX, (sand, snow, mud)
+
+
+def test_a_body_lighter_than_water_floats_and_a_heavier_one_sinks():
+    """Dropped onto the ocean's surface, a robot of half water's density stays up; one of three
+    times water's density goes under and keeps sinking (slowly: at dx 1/32 the water must
+    flow around a body only 2.5 cells thick, which makes the drag large)."""
+    surface = 0.1 + PRESET_CONFIGS["ocean"]().cover.thickness
+    final = {}
+    for density in (500.0, 3000.0):
+        env = make_env("ocean", robot=RobotConfig(density=density, youngs_modulus=1e5, rest_on="cover"))
+        try:
+            env.reset()
+            for _ in range(100):
+                result = env.step(np.zeros(env.action_dim))
+            final[density] = result.observation
+        finally:
+            env.close()
+    assert final[500.0][1] > surface  # measured 0.299 (surface 0.25)
+    assert final[3000.0][1] < surface - DX / 2 and final[3000.0][4] < 0  # measured 0.230, still sinking
+
+
+@pytest.mark.parametrize("name", ["desert", "wetland", "ocean"])
+def test_benchmark_scenes_have_the_papers_particle_counts(name):
+    from codesign_mpm.bench import ENV_SCALES, environment_particles
+
+    scene, particles = environment_particles(name, "paper")
+    assert scene.dx == ENV_SCALES["paper"]["dx"]
+    if name == "ocean":  # the water covers the robot instead
+        assert particles.x[~particles.robot, 1].max() > particles.x[particles.robot, 1].max()
+    else:
+        assert particles.n == pytest.approx(144_000, rel=0.02)
