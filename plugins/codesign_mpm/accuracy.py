@@ -28,7 +28,7 @@ class Setting:
 
 REFERENCE = Setting()
 SWEEPS = {
-    "dx": [Setting(dx=d) for d in (1 / 16, 1 / 24, 1 / 32, 1 / 48, 1 / 64)],
+    "dx": [Setting(dx=d) for d in (1 / 20, 1 / 24, 1 / 32, 1 / 48, 1 / 64)],
     "particles_per_cell": [Setting(particles_per_cell=n) for n in (1, 8, 27)],
     "cfl": [Setting(cfl=c) for c in (0.1, 0.2, 0.4, 0.8)],
     "dtype": [Setting(dtype="float64")],  # compare with the float32 reference of the other sweeps

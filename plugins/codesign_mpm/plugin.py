@@ -90,6 +90,21 @@ def codesign_cli(app: typer.Typer) -> None:
                 raise typer.BadParameter(f"--env {name!r}: choose from {', '.join(PRESETS)}")
         run_environment_bench(scale, env, lambda record: typer.echo(json.dumps(record)))
 
+    @bench.command("accuracy")
+    def bench_accuracy(
+        sweep: list[str] = typer.Option(["dx", "particles_per_cell", "cfl", "dtype"], "--sweep",
+                                        help="dx, particles_per_cell, cfl and/or dtype; repeatable."),
+    ) -> None:
+        """Error of an elastic bar's ringing frequency against wall time, one setting at a time."""
+        import json
+
+        from codesign_mpm.accuracy import SWEEPS, run_accuracy_bench
+
+        for s in sweep:
+            if s not in SWEEPS:
+                raise typer.BadParameter(f"--sweep {s!r}: choose from {', '.join(SWEEPS)}")
+        run_accuracy_bench(sweep, lambda record: typer.echo(json.dumps(record)))
+
     @bench.command("engine")
     def bench_engine(
         scale: list[str] = typer.Option(["small"], "--scale", help="small (about 7.7k particles, dx 1/64) "
