@@ -3,6 +3,7 @@ import copy
 import pytest
 
 from codesign import plugins
+from codesign.cli import main
 
 #: A small recipe that runs in well under a second with the test doubles.
 TOY_RECIPE = {
@@ -29,3 +30,16 @@ def fresh_plugins(monkeypatch):
 @pytest.fixture
 def toy_recipe() -> dict:
     return copy.deepcopy(TOY_RECIPE)
+
+
+@pytest.fixture
+def cli(capsys):
+    """Run the codesign CLI in-process: cli("run", ...) -> (exit code, stdout, stderr)."""
+
+    def run(*args: str) -> tuple[int, str, str]:
+        with pytest.raises(SystemExit) as info:
+            main(list(args))
+        out, err = capsys.readouterr()
+        return info.value.code, out, err
+
+    return run

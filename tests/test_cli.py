@@ -3,7 +3,6 @@ import json
 import pytest
 import yaml
 
-from codesign.cli import main
 
 
 def write_recipe(tmp_path, data) -> str:
@@ -12,27 +11,20 @@ def write_recipe(tmp_path, data) -> str:
     return str(path)
 
 
-def cli(capsys, *args) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as info:
-        main(list(args))
-    out, err = capsys.readouterr()
-    return info.value.code, out, err
-
-
-def test_run_prints_the_run_dir_and_resume_continues(tmp_path, capsys, toy_recipe):
+def test_run_prints_the_run_dir_and_resume_continues(tmp_path, cli, toy_recipe):
     recipe = write_recipe(tmp_path, toy_recipe)
     run_dir = tmp_path / "run"
-    code, out, _ = cli(capsys, "run", recipe, "optimizer.episodes=2", "--run-dir", str(run_dir), "--no-progress")
+    code, out, _ = cli("run", recipe, "optimizer.episodes=2", "--run-dir", str(run_dir), "--no-progress")
     assert code == 0
     assert out.strip() == str(run_dir)
     assert len((run_dir / "metrics.jsonl").read_text().splitlines()) == 2
-    code, out, _ = cli(capsys, "run", "--resume", str(run_dir), "--no-progress")
+    code, out, _ = cli("run", "--resume", str(run_dir), "--no-progress")
     assert (code, out.strip()) == (0, str(run_dir))
 
 
-def test_user_errors_print_one_red_line_without_traceback(tmp_path, capsys, toy_recipe):
+def test_user_errors_print_one_red_line_without_traceback(tmp_path, cli, toy_recipe):
     recipe = write_recipe(tmp_path, toy_recipe)
-    code, out, err = cli(capsys, "show", recipe, "controller.name=sinee")
+    code, out, err = cli("show", recipe, "controller.name=sinee")
     assert code == 1 and out == ""
     assert err.strip() == (
         "error: invalid recipe 'toy': controller.name: unknown controller 'sinee'; did you mean 'sine'? "
@@ -41,13 +33,13 @@ def test_user_errors_print_one_red_line_without_traceback(tmp_path, capsys, toy_
     assert "Traceback" not in err
 
 
-def test_resume_rejects_a_recipe_argument(tmp_path, capsys):
-    code, _, err = cli(capsys, "run", "x.yaml", "--resume", str(tmp_path))
+def test_resume_rejects_a_recipe_argument(tmp_path, cli):
+    code, _, err = cli("run", "x.yaml", "--resume", str(tmp_path))
     assert code == 1 and "--resume takes no recipe" in err
 
 
-def test_show_prints_the_resolved_recipe(tmp_path, capsys, toy_recipe):
-    code, out, _ = cli(capsys, "show", write_recipe(tmp_path, toy_recipe), "seed=9")
+def test_show_prints_the_resolved_recipe(tmp_path, cli, toy_recipe):
+    code, out, _ = cli("show", write_recipe(tmp_path, toy_recipe), "seed=9")
     assert code == 0
     shown = yaml.safe_load(out)
     assert shown["seed"] == 9
@@ -55,8 +47,8 @@ def test_show_prints_the_resolved_recipe(tmp_path, capsys, toy_recipe):
     assert shown["tracking"] == {"wandb": False, "wandb_mode": "offline", "project": "codesign", "group": None}
 
 
-def test_plugins_json_lists_every_entry_with_its_source(capsys):
-    code, out, _ = cli(capsys, "plugins", "--json")
+def test_plugins_json_lists_every_entry_with_its_source(cli):
+    code, out, _ = cli("plugins", "--json")
     assert code == 0
     rows = json.loads(out)
     assert {"kind": "controller", "name": "sine", "plugin": "basics", "distribution": "codesign"}.items() <= next(
@@ -65,25 +57,25 @@ def test_plugins_json_lists_every_entry_with_its_source(capsys):
     assert all(r["description"] for r in rows)
 
 
-def test_plugins_table(capsys):
-    code, out, _ = cli(capsys, "plugins")
+def test_plugins_table(cli):
+    code, out, _ = cli("plugins")
     assert code == 0 and "evaluate" in out and "basics" in out
 
 
-def test_disable_plugin_option_hides_its_entries(capsys):
-    code, out, _ = cli(capsys, "--disable-plugin", "basics", "plugins", "--json")
+def test_disable_plugin_option_hides_its_entries(cli):
+    code, out, _ = cli("--disable-plugin", "basics", "plugins", "--json")
     assert code == 0
     assert "sine" not in [r["name"] for r in json.loads(out)]
 
 
-def test_plugins_add_commands(capsys):
-    code, out, _ = cli(capsys, "toy-hello")
+def test_plugins_add_commands(cli):
+    code, out, _ = cli("toy-hello")
     assert (code, out) == (0, "hello from toy\n")
-    code, out, _ = cli(capsys, "--help")
+    code, out, _ = cli("--help")
     assert "toy-hello" in out and "--disable-plugin" in out
 
 
 @pytest.mark.parametrize("command", ["run", "show", "plugins"])
-def test_every_command_has_help(capsys, command):
-    code, out, _ = cli(capsys, command, "--help")
+def test_every_command_has_help(cli, command):
+    code, out, _ = cli(command, "--help")
     assert code == 0 and "Usage" in out

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import yaml
 
-from codesign.cli import main
 from codesign_mpm.sampling import build_particles
 from codesign_mpm.simulate import load_scene
 
@@ -28,16 +27,9 @@ def write(tmp_path, data) -> str:
     return str(path)
 
 
-def cli(capsys, *args) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as info:
-        main(list(args))
-    out, err = capsys.readouterr()
-    return info.value.code, out, err
-
-
-def test_export_holds_every_frame_and_the_particle_labels(tmp_path, capsys):
+def test_export_holds_every_frame_and_the_particle_labels(tmp_path, cli):
     scene_file, export = write(tmp_path, SCENE), tmp_path / "states.npz"
-    code, out, _ = cli(capsys, "simulate", scene_file, "--frames", "4", "--export", str(export), "--no-progress")
+    code, out, _ = cli("simulate", scene_file, "--frames", "4", "--export", str(export), "--no-progress")
     assert code == 0
     assert "particles" in out and "substeps per frame" in out and "particle-substeps / s" in out
     particles = build_particles(load_scene(scene_file))
@@ -64,10 +56,10 @@ def test_export_holds_every_frame_and_the_particle_labels(tmp_path, capsys):
     (lambda s: s.update(dx=-0.1), "dx = -0.1 is invalid: must be > 0"),
     (lambda s: s["bodies"][0].update(material={"kind": "jelly"}), "bodies[0].material.kind = 'jelly' is invalid"),
 ])
-def test_bad_scenes_give_one_red_line_naming_the_key(tmp_path, capsys, change, message):
+def test_bad_scenes_give_one_red_line_naming_the_key(tmp_path, cli, change, message):
     scene = yaml.safe_load(yaml.safe_dump(SCENE))
     change(scene)
-    code, out, err = cli(capsys, "simulate", write(tmp_path, scene), "--frames", "1", "--no-progress")
+    code, out, err = cli("simulate", write(tmp_path, scene), "--frames", "1", "--no-progress")
     assert code == 1 and out == ""
     assert len(err.strip().splitlines()) == 1 and message in err and "Traceback" not in err
 
@@ -76,12 +68,12 @@ EXAMPLES = sorted((Path(__file__).resolve().parents[2] / "docs" / "scenes").glob
 
 
 @pytest.mark.parametrize("path", EXAMPLES, ids=lambda p: p.stem)
-def test_example_scenes_load_and_simulate(path, capsys):
-    code, out, _ = cli(capsys, "simulate", str(path), "--frames", "2", "--no-progress")
+def test_example_scenes_load_and_simulate(path, cli):
+    code, out, _ = cli("simulate", str(path), "--frames", "2", "--no-progress")
     assert code == 0 and "particle-substeps / s" in out
 
 
-def test_a_mixed_scene_simulates_every_material_kind_together(tmp_path, capsys):
+def test_a_mixed_scene_simulates_every_material_kind_together(tmp_path, cli):
     """One body of each non-elastic kind, dropped side by side with an elastic one."""
     kinds = ["sand", "snow", "clay", "water", "mud", "neo_hookean"]
     scene = {"size": [1.0, 0.4, 0.3], "dx": 1 / 32, "terrain": {"kind": "flat", "height": 0.1},
@@ -90,7 +82,7 @@ def test_a_mixed_scene_simulates_every_material_kind_together(tmp_path, capsys):
                          "center": [0.15 + 0.14 * i, 0.0, 0.15], "rest_on_terrain": True}
                         for i, kind in enumerate(kinds)]}
     export = tmp_path / "mixed.npz"
-    code, _, _ = cli(capsys, "simulate", write(tmp_path, scene), "--frames", "20", "--export", str(export),
+    code, _, _ = cli("simulate", write(tmp_path, scene), "--frames", "20", "--export", str(export),
                      "--no-progress")
     assert code == 0
     data = np.load(export)
