@@ -64,9 +64,9 @@ T = 3  # frames of the differentiable rollout
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["desert", "snow", "clay", "wetland", "ocean"])
+@pytest.mark.parametrize("name", ENVIRONMENTS)
 def test_gradients_through_each_cover_are_finite_and_match_finite_differences(name):
-    """Backward through the plastic / fluid models in float64 (shallow water shares ocean's kernels)."""
+    """Backward through every environment in float64, checked against central differences."""
     env = make_env(name, dtype="float64")
     sim = Simulator(env.scene, env.particles, requires_grad=True, max_frames=12, checkpoint_every=64)
     actions = random_actions(env, T, seed=1)
@@ -81,7 +81,8 @@ def test_gradients_through_each_cover_are_finite_and_match_finite_differences(na
         loss(actions)
         g = sim.backward(com_x=weights)
         assert np.isfinite(g.actions).all() and np.isfinite(g.x0).all() and np.isfinite(g.v0).all()
-        assert np.abs(g.x0[~robot]).max() > 0, "the cover should influence the robot"
+        if (~robot).any():
+            assert np.abs(g.x0[~robot]).max() > 0, "the cover should influence the robot"
         for index in [(0, 0), (T - 1, 3)]:
             eps = 1e-6
             plus, minus = actions.copy(), actions.copy()
