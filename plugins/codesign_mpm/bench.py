@@ -98,18 +98,25 @@ def measure_backward(case: Case, frames: int = 200, repeats: int = 1) -> dict:
                 peak_rss_mb=round(_peak_rss_mb(), 1))
 
 
-def _run_isolated(kind: str, case: Case, **kwargs) -> dict:
-    args = [sys.executable, "-m", "codesign_mpm.bench", kind, case.scale, case.dtype, case.grid_region,
-            json.dumps(kwargs)]
-    done = subprocess.run(args, capture_output=True, text=True)
+def _machine() -> dict:
+    return dict(machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version())
+
+
+def _in_subprocess(*args: str) -> dict:
+    """Run `python -m codesign_mpm.bench ARGS` and return its JSON record (or the error line)."""
+    done = subprocess.run([sys.executable, "-m", "codesign_mpm.bench", *args], capture_output=True, text=True)
     if done.returncode:
-        return dict(measure=kind, error=done.stderr.strip().splitlines()[-1] if done.stderr else "failed")
+        return dict(error=done.stderr.strip().splitlines()[-1] if done.stderr else "failed")
     return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _run_isolated(kind: str, case: Case, **kwargs) -> dict:
+    return {"measure": kind, **_in_subprocess(kind, case.scale, case.dtype, case.grid_region, json.dumps(kwargs))}
 
 
 def run_engine_bench(scales: list[str], frames: int, emit) -> None:
     """Emit one JSON object per measurement (see docs/performance.md for what each means)."""
-    machine = dict(machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version())
+    machine = _machine()
     for scale in scales:
         for case in (Case(scale, "float32"), Case(scale, "float64"), Case(scale, "float32", "full")):
             emit(dict(scale=scale, dtype=case.dtype, grid_region=case.grid_region,
@@ -181,16 +188,10 @@ def measure_environment(name: str, scale: str, frames: int = 3, repeats: int = 3
 
 def run_environment_bench(scales: list[str], names: list[str], emit) -> None:
     """Emit one JSON object per (scale, environment), each measured in its own process."""
-    machine = dict(machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version())
+    machine = _machine()
     for scale in scales:
         for name in names:
-            args = [sys.executable, "-m", "codesign_mpm.bench", "environment", name, scale]
-            done = subprocess.run(args, capture_output=True, text=True)
-            if done.returncode:
-                record = dict(measure="environment", environment=name,
-                              error=done.stderr.strip().splitlines()[-1] if done.stderr else "failed")
-            else:
-                record = json.loads(done.stdout.strip().splitlines()[-1])
+            record = {"measure": "environment", "environment": name, **_in_subprocess("environment", name, scale)}
             emit(dict(scale=scale, **record, **machine))
 
 
