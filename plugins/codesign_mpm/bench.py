@@ -179,6 +179,7 @@ def measure_environment(name: str, scale: str, frames: int = 3, repeats: int = 3
                   materials=sorted({b.material.kind for b in scene.bodies}),
                   substeps_per_control_step=sim.timestep.substeps, dt=sim.timestep.dt,
                   ms_per_substep=round(1e3 * per_substep, 3), particle_substeps_per_s=sim.n / per_substep,
+                  wall_s_per_simulated_s=round(per_substep * sim.timestep.substeps / scene.frame_dt, 2),
                   first_frame_s=round(first, 3))
     if scale == "paper" and name in OLD_MS_PER_SUBSTEP:
         record["old_ms_per_substep"] = OLD_MS_PER_SUBSTEP[name]

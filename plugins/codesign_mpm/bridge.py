@@ -27,9 +27,12 @@ class _Rollout(torch.autograd.Function):
     @staticmethod
     def forward(ctx, sim: Simulator, checkpoint_every, actions, *inputs):
         host = [None if t is None else t.detach().cpu().numpy() for t in inputs]
-        ctx.args = (sim, checkpoint_every, actions.detach().cpu().numpy(), dict(zip(DESIGN_INPUTS, host[:4])),
-                    *host[4:])
-        out = _run(*ctx.args)
+        ctx.actions = actions.detach().cpu().numpy()
+        ctx.sim, ctx.checkpoint_every = sim, checkpoint_every
+        out = _run(sim, checkpoint_every, ctx.actions, dict(zip(DESIGN_INPUTS, host[:4])), *host[4:])
+        # the whole design and initial state of this rollout, inputs left as None included, so a
+        # recompute in backward replays exactly it whatever ran on the simulator in between
+        ctx.snapshot = sim.snapshot()
         ctx.rollout_id = sim.rollouts
         ctx.present = [t is not None for t in inputs]
         ctx.dtype, ctx.device = actions.dtype, actions.device
@@ -41,9 +44,10 @@ class _Rollout(torch.autograd.Function):
         def host(t):
             return None if t is None else t.detach().cpu().numpy().astype(np.float64)
 
-        sim = ctx.args[0]
-        if sim.rollouts != ctx.rollout_id:  # another rollout ran since: recompute ours first
-            _run(*ctx.args)
+        sim = ctx.sim
+        if sim.rollouts != ctx.rollout_id or not sim.rollout_is_current:  # state changed since: replay ours
+            sim.restore(ctx.snapshot)
+            sim.rollout(ctx.actions, checkpoint_every=ctx.checkpoint_every)
             ctx.rollout_id = sim.rollouts
         grads = sim.backward(com_x=host(g_com_x), com_v=host(g_com_v), x=host(g_x), v=host(g_v))
 
@@ -63,7 +67,8 @@ def simulate(sim: Simulator, actions: torch.Tensor, *, volume: torch.Tensor | No
 
     Returns (com_x (T+1, 3), com_v (T+1, 3), x (N, 3), v (N, 3)) for the robot's centre of
     mass per frame and every particle at the end. Inputs left as None keep the simulator's
-    current values and receive no gradient. If other rollouts ran on the same simulator
-    before backward, this one is recomputed first (correct, at the cost of one forward).
+    current values and receive no gradient. If the simulator ran or changed anything else
+    before backward (another rollout, `step`, `set_design`), this rollout's recorded design and
+    initial state are restored and it is recomputed first (correct, at the cost of one forward).
     """
     return _Rollout.apply(sim, checkpoint_every, actions, volume, youngs_modulus, muscle, fiber, x0, v0)

@@ -20,24 +20,30 @@ the plastic volume ratio J_p of snow), the muscle term when the scene has actuat
 terrain projection when there is terrain (`ti.static`).
 
 Plastic models (sand, snow, clay, mud) work in principal Hencky strain of b = F F^T. Its
-eigenvectors come from a forward-only Jacobi solver (`_eigen_frames`); the differentiable
-kernel rotates b into that frame, where it is diagonal up to round-off, and takes eigenvalues
-and eigenvectors from first-order perturbation theory, with the eigenvector coupling
-a_pq / (a_qq - a_pp) in the bounded form x / (x^2 + eps^2) (`JACOBI_EPS`): the adjoint stays
-finite at repeated eigenvalues, the state of every body at rest, where the coupling
-multiplies a difference of equal eigenvalue functions, which is exactly zero.
+eigenvectors Q0 come from a forward-only Jacobi solver (`_eigen_frames`) and are a constant
+of the differentiable kernel: in that frame A = Q0^T b Q0 is diagonal up to round-off, and
+an isotropic function G(b) = sum_i g(lambda_i) n_i n_i^T (the stress, the projection's
+scale) is, to first order in A's off-diagonal entries,
+
+    G = Q0 (diag g(a) + A_pq [g]_pq) Q0^T,   [g]_pq = (g_q - g_p) / (a_q - a_p),
+
+the Daleckii-Krein form of its derivative. The divided difference is written branch-free as
+((g_q - g_p) d + g'_pq eps^2) / (d^2 + eps^2) with d = a_q - a_p and g'_pq the slope at
+coincidence (`_divided`), so the adjoint keeps its full shear stiffness where eigenvalues
+coincide: at rest, and in layers loaded by gravity alone.
 """
 # (no `from __future__ import annotations`: Taichi reads kernel annotations at runtime)
 
 import math
 import weakref
-from dataclasses import dataclass
+from collections import OrderedDict
+from dataclasses import dataclass, replace
 
 import numpy as np
 import taichi as ti
 
 from codesign_mpm import runtime
-from codesign_mpm.materials import ID, MATERIALS, MIN_HARDENING, N_PARAMS, model_wave_speed, viscosity
+from codesign_mpm.materials import ID, MATERIALS, MIN_HARDENING, N_PARAMS, model_wave_speed, muscle_modulus, viscosity
 from codesign_mpm.sampling import Particles
 from codesign_mpm.scene import Scene, SceneError, validate_scene
 from codesign_mpm.terrain import height_map, normals
@@ -48,7 +54,8 @@ MASS_EPS = 1e-12  # grid nodes lighter than this are treated as empty
 CAPACITY_STEP = 1024  # particle storage is allocated in these steps so similar scenes share kernels
 JACOBI_SWEEPS = 4  # cyclic sweeps of the 3x3 eigen-solver; b = F F^T stays near I for plastic models
 HENCKY_PLASTIC = (ID["sand"], ID["snow"], ID["clay"], ID["mud"])  # models with a return mapping in log strain
-JACOBI_EPS = 1e-6
+JACOBI_EPS = 1e-6  # eigenvalue gaps below this count as coincident (the scale of b's round-off in float32)
+MAX_FREE_STORAGES = 4  # compiled storages kept for reuse after their simulators close; older ones are freed
 NORM_FLOOR = 1e-30  # |dev eps|^2 below this is treated as this (only reached where the result is masked off)
 
 
@@ -76,14 +83,18 @@ class TimeStep:
 def time_step(scene: Scene, particles: Particles) -> TimeStep:
     """Substep from the CFL condition with the stiffest material and fastest initial speed.
 
-    dt <= cfl * dx / (c_p + |v|max), c_p = sqrt((lambda + 2 mu + 8 s) / rho) (water:
-    sqrt(K / rho); snow: at its largest hardening), and for viscous materials also the
-    explicit diffusion limit dt <= cfl * rho dx^2 / (6 eta). A forced `dt` above that bound
-    is refused unless `allow_unstable_dt` is set.
+    dt <= cfl * dx / (c_p + |v|max), c_p = sqrt((lambda + 2 mu + m) / rho) with m what the
+    scene's muscle model adds to the axial modulus (`materials.muscle_modulus`; particles
+    without muscle membership add nothing), water's sqrt(K / rho), snow's speed at its largest
+    hardening; for viscous materials also the explicit diffusion limit dt <= cfl * rho dx^2 /
+    (6 eta). A forced `dt` above that bound is refused unless `allow_unstable_dt` is set.
     """
-    kinds = set(zip(particles.material.tolist(), particles.youngs_modulus, particles.poisson_ratio,
-                    particles.density, particles.muscle_ratio, map(tuple, particles.params.tolist())))
-    speeds = [model_wave_speed(m, e, nu, rho, r * e, params) for m, e, nu, rho, r, params in kinds]
+    actuated = (np.abs(particles.muscle).sum(1) > 0) & (particles.muscle_ratio > 0)
+    added = np.where(actuated, muscle_modulus(scene.muscle_model, particles.muscle_ratio * particles.youngs_modulus,
+                                              scene.max_action), 0.0)
+    kinds = set(zip(particles.material.tolist(), particles.youngs_modulus.tolist(), particles.poisson_ratio.tolist(),
+                    particles.density.tolist(), added.tolist(), map(tuple, particles.params.tolist())))
+    speeds = [model_wave_speed(m, e, nu, rho, extra, params) for m, e, nu, rho, extra, params in kinds]
     vmax = float(np.linalg.norm(particles.v, axis=1).max(initial=0.0))
     stable = scene.cfl * scene.dx / (max(speeds) + vmax)
     for m, _, _, rho, _, params in kinds:
@@ -112,6 +123,7 @@ class Gradients:
     fiber: np.ndarray  # (N, 3)
     x0: np.ndarray  # (N, 3)
     v0: np.ndarray  # (N, 3)
+    F0: np.ndarray  # (N, 3, 3) initial deformation gradient
 
 
 @dataclass
@@ -135,6 +147,7 @@ class Layout:
     grid_shape: tuple[int, int, int]
     models: tuple[int, ...]  # material models compiled in (ids of materials.MATERIALS)
     has_muscles: bool
+    muscle_model: str
     has_terrain: bool
     boundary_cells: int
     requires_grad: bool
@@ -147,7 +160,8 @@ class _Storage:
     Taichi compiles kernels per set of fields, so a fresh storage costs a compile (about 3 s
     forward, about 2 minutes for the backward kernels on 2 CPU cores when the offline cache is
     cold). Storages are therefore pooled by layout and handed to the next simulator that needs
-    the same one (see `_acquire`).
+    the same one (see `_acquire`). Their fields live in one SNode tree of their own, so a
+    storage evicted from the pool gives its memory back (`free`).
     """
 
     def __init__(self, layout: Layout) -> None:
@@ -157,46 +171,70 @@ class _Storage:
         self.has_params = any(MATERIALS[MODEL_NAMES[m]].plastic for m in layout.models)
         self.has_jp = ID["snow"] in layout.models  # snow's plastic volume ratio is part of the state
         self.has_muscles = layout.has_muscles
+        self.muscle_model = layout.muscle_model
         self.has_terrain = layout.has_terrain
         self.boundary_cells = layout.boundary_cells
         n, K, gs, grad = layout.capacity, max(layout.n_actuators, 1), layout.grid_shape, layout.requires_grad
         slots, rows = layout.slots, layout.rows
-        self.x = ti.Vector.field(3, float, shape=(slots, n), needs_grad=grad)
-        self.v = ti.Vector.field(3, float, shape=(slots, n), needs_grad=grad)
-        self.C = ti.Matrix.field(3, 3, float, shape=(slots, n), needs_grad=grad)
-        self.F = ti.Matrix.field(3, 3, float, shape=(slots, n), needs_grad=grad)
-        self.vol = ti.field(float, shape=n, needs_grad=grad)
-        self.E = ti.field(float, shape=n, needs_grad=grad)
-        self.nu = ti.field(float, shape=n)
-        self.rho = ti.field(float, shape=n)
-        self.material = ti.field(ti.i32, shape=n)
-        self.muscle = ti.Vector.field(K, float, shape=n, needs_grad=grad)
-        self.fiber = ti.Vector.field(3, float, shape=n, needs_grad=grad)
-        self.muscle_ratio = ti.field(float, shape=n)
-        self.probe_w = ti.field(float, shape=n)
-        self.act = ti.Vector.field(K, float, shape=rows, needs_grad=grad)
-        self.com_x = ti.Vector.field(3, float, shape=rows, needs_grad=grad)
-        self.com_v = ti.Vector.field(3, float, shape=rows, needs_grad=grad)
-        self.grid_v_in = ti.Vector.field(3, float, shape=gs, needs_grad=grad)
-        self.grid_m = ti.field(float, shape=gs, needs_grad=grad)
-        self.grid_v_out = ti.Vector.field(3, float, shape=gs, needs_grad=grad)
-        self.height = ti.field(float, shape=(gs[0], gs[2]))
-        self.normal = ti.Vector.field(3, float, shape=(gs[0], gs[2]))
+        builder = ti.FieldsBuilder()
+
+        def placed(make, shape, differentiable=False):
+            """A field of `shape` in this storage's tree (with its gradient if asked and grad is on)."""
+            f = make(needs_grad=grad and differentiable)
+            node = builder.dense(ti.axes(*range(len(shape))), shape) if shape else builder
+            node.place(f, f.grad) if grad and differentiable else node.place(f)
+            return f
+
+        def vec(k, shape, differentiable=False):
+            return placed(lambda **kw: ti.Vector.field(k, float, **kw), shape, differentiable)
+
+        def mat(shape, differentiable=False):
+            return placed(lambda **kw: ti.Matrix.field(3, 3, float, **kw), shape, differentiable)
+
+        def scalar(shape, differentiable=False, dtype=float):
+            return placed(lambda **kw: ti.field(dtype, **kw), shape, differentiable)
+
+        self.x = vec(3, (slots, n), True)
+        self.v = vec(3, (slots, n), True)
+        self.C = mat((slots, n), True)
+        self.F = mat((slots, n), True)
+        self.vol = scalar((n,), True)
+        self.E = scalar((n,), True)
+        self.nu = scalar((n,))
+        self.rho = scalar((n,))
+        self.material = scalar((n,), dtype=ti.i32)
+        self.muscle = vec(K, (n,), True)
+        self.fiber = vec(3, (n,), True)
+        self.muscle_ratio = scalar((n,))
+        self.probe_w = scalar((n,))
+        self.act = vec(K, (rows,), True)
+        self.com_x = vec(3, (rows,), True)
+        self.com_v = vec(3, (rows,), True)
+        self.grid_v_in = vec(3, gs, True)
+        self.grid_m = scalar(gs, True)
+        self.grid_v_out = vec(3, gs, True)
+        self.height = scalar((gs[0], gs[2]))
+        self.normal = vec(3, (gs[0], gs[2]))
         # the node box touched by particles; scalar fields so the reduction stays thread-local
-        self.lo = [ti.field(ti.i32, shape=()) for _ in range(3)]
-        self.hi = [ti.field(ti.i32, shape=()) for _ in range(3)]
-        self.dt = ti.field(float, shape=())
-        self.dx = ti.field(float, shape=())
-        self.gravity = ti.Vector.field(3, float, shape=())
-        self.friction = ti.field(float, shape=())
-        self.n_bad = ti.field(ti.i32, shape=())
-        self.first_bad = ti.field(ti.i32, shape=())
-        self.max_speed = ti.field(float, shape=())
+        self.lo = [scalar((), dtype=ti.i32) for _ in range(3)]
+        self.hi = [scalar((), dtype=ti.i32) for _ in range(3)]
+        self.dt = scalar(())
+        self.dx = scalar(())
+        self.gravity = vec(3, ())
+        self.friction = scalar(())
+        self.n_bad = scalar((), dtype=ti.i32)
+        self.first_bad = scalar((), dtype=ti.i32)
+        self.max_speed = scalar(())
         if self.has_params:  # every non-elastic scene gets the same fields, so they share compiled kernels
-            self.params = ti.Vector.field(N_PARAMS, float, shape=n)
-            self.tau = ti.Matrix.field(3, 3, float, shape=n, needs_grad=grad)  # stress of the current substep
-            self.frame = ti.Matrix.field(3, 3, float, shape=n)  # eigenvectors of b (no gradient)
-            self.Jp = ti.field(float, shape=(slots, n), needs_grad=grad)  # snow's plastic volume ratio
+            self.params = vec(N_PARAMS, (n,))
+            self.tau = mat((n,), True)  # stress of the current substep
+            self.frame = mat((n,))  # eigenvectors of b (no gradient)
+            self.Jp = scalar((slots, n), True)  # snow's plastic volume ratio
+        self._tree = builder.finalize()
+
+    def free(self) -> None:
+        """Give the fields' memory back; the storage is unusable afterwards."""
+        self._tree.destroy()
 
     @ti.kernel
     def _load_state(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
@@ -286,8 +324,12 @@ class _Storage:
         J = F.determinant()
         tau = ti.Matrix.zero(float, 3, 3)
         if ti.static(model == MATERIALS["neo_hookean"].id):
-            log_j = ti.log(ti.max(J, J_MIN)) + ti.min(J - J_MIN, 0.0) / J_MIN
-            tau = mu * (F @ F.transpose() - I) + la * log_j * I
+            # volumetric Kirchhoff stress J psi'(J) with psi = lambda log(J)^2 / 2; below J_MIN psi
+            # continues as its quadratic Taylor polynomial, so J psi'(J) turns tensile for J < 0 and
+            # an inverted element is pulled back through J = 0 instead of pushed further
+            low = ti.min(J - J_MIN, 0.0)
+            dpsi = ti.log(ti.max(J, J_MIN)) / ti.max(J, J_MIN) + (1.0 - ti.log(J_MIN)) / J_MIN ** 2 * low
+            tau = mu * (F @ F.transpose() - I) + la * J * dpsi * I
         elif ti.static(model == MATERIALS["corotated"].id):
             R, _ = ti.polar_decompose(F)
             tau = 2.0 * mu * (F - R) @ F.transpose() + la * (J - 1.0) * J * I
@@ -308,6 +350,21 @@ class _Storage:
         return G.transpose() @ A @ G, Q @ G
 
     @ti.func
+    def _divided(self, g, slope, a, p: ti.template(), q: ti.template()):
+        """(g_q - g_p) / (a_q - a_p), continued by the mean slope where the eigenvalues coincide."""
+        d = a[q] - a[p]
+        return ((g[q] - g[p]) * d + 0.5 * (slope[p] + slope[q]) * JACOBI_EPS ** 2) / (d * d + JACOBI_EPS ** 2)
+
+    @ti.func
+    def _spectral(self, Q0, A, a, g, slope):
+        """The isotropic function of b = Q0 A Q0^T with eigenvalue function g (values at a = diag A,
+        slopes dg_i/da_i at coincidence), to first order in A's off-diagonal round-off."""
+        g01 = A[0, 1] * self._divided(g, slope, a, 0, 1)
+        g02 = A[0, 2] * self._divided(g, slope, a, 0, 2)
+        g12 = A[1, 2] * self._divided(g, slope, a, 1, 2)
+        return Q0 @ ti.Matrix([[g[0], g01, g02], [g01, g[1], g12], [g02, g12, g[2]]]) @ Q0.transpose()
+
+    @ti.func
     def _plastic(self, model: ti.template(), p, s, so, F, mu, la):
         """Return mapping of one plastic model in principal Hencky strain eps = log(sigma).
 
@@ -317,24 +374,22 @@ class _Storage:
         without branches or reassigned locals (masks select the case): Taichi's reverse mode
         turns locals assigned in branches into stacks, which made this kernel take tens of
         minutes to compile.
+
+        The Hencky models map eps affinely per particle, eps_new = alpha eps + beta (alpha = 1
+        inside the yield surface, |radius| / |dev eps| on it, 0 at the apex), so the stress
+        k_i = 2 mu eps_new_i + lambda tr(eps_new) has the slope mu alpha / a_i and the
+        projection's scale exp(eps_new_i - eps_i) the slope scale_i (alpha - 1) / (2 a_i).
         """
-        # In the frame Q0 of b's eigenvectors (from _eigen_frames) A = Q0^T b Q0 is diagonal up to
-        # round-off; first-order perturbation theory gives its eigenvalues, a_ii, and eigenvectors,
-        # Q0 (I + W) with W_pq = a_pq / (a_qq - a_pp), written in the bounded form
-        # x / (x^2 + eps^2) so it stays finite where eigenvalues coincide. Value and derivative
-        # are exact to first order in the round-off a_pq.
-        Q0 = self.frame[p]
+        Q0 = self.frame[p]  # eigenvectors of b = F F^T from _eigen_frames: A is diagonal up to round-off
         A = Q0.transpose() @ F @ F.transpose() @ Q0
-        w01 = A[0, 1] * (A[1, 1] - A[0, 0]) / ((A[1, 1] - A[0, 0]) ** 2 + JACOBI_EPS ** 2)
-        w02 = A[0, 2] * (A[2, 2] - A[0, 0]) / ((A[2, 2] - A[0, 0]) ** 2 + JACOBI_EPS ** 2)
-        w12 = A[1, 2] * (A[2, 2] - A[1, 1]) / ((A[2, 2] - A[1, 1]) ** 2 + JACOBI_EPS ** 2)
-        Q = Q0 @ ti.Matrix([[1.0, w01, w02], [-w01, 1.0, w12], [-w02, -w12, 1.0]])
-        eps = 0.5 * ti.log(ti.max(ti.Vector([A[0, 0], A[1, 1], A[2, 2]]), J_MIN * J_MIN))
+        a = ti.max(ti.Vector([A[0, 0], A[1, 1], A[2, 2]]), J_MIN * J_MIN)
+        eps = 0.5 * ti.log(a)
         tr = eps.sum()
         dev = eps - tr / 3.0
         n2 = dev.dot(dev)
         prm = self.params[p]
         eps_new = eps
+        alpha = 1.0
         if ti.static(model == ID["sand"]):
             # Drucker-Prager (Klar et al. 2016): |dev tau| <= -alpha tr(tau) around the apex set by
             # the cohesion; expansion beyond the apex loses all elastic strain (no tension).
@@ -342,33 +397,39 @@ class _Storage:
             slope = prm[0] * (3.0 * la + 2.0 * mu) / (2.0 * mu)
             apex = ti.cast(tr > tip, float)
             cone = (1.0 - apex) * ti.cast(n2 > (slope * (tip - tr)) ** 2, float)
-            on_cone = tr / 3.0 + slope * (tip - tr) * dev / ti.sqrt(ti.max(n2, NORM_FLOOR))
-            eps_new = eps + apex * (tip / 3.0 - eps) + cone * (on_cone - eps)
+            shrink = slope * (tip - tr) / ti.sqrt(ti.max(n2, NORM_FLOOR))
+            eps_new = eps + apex * (tip / 3.0 - eps) + cone * (tr / 3.0 + shrink * dev - eps)
+            alpha = 1.0 - apex + cone * (shrink - 1.0)
         elif ti.static(model == ID["clay"] or model == ID["mud"]):
             # von Mises: |dev tau| = 2 mu |dev eps| <= sqrt(2/3) yield stress
             radius = ti.sqrt(2.0 / 3.0) * prm[0] / (2.0 * mu)
             outside = ti.cast(n2 > radius * radius, float)
-            eps_new = eps + outside * (tr / 3.0 + radius * dev / ti.sqrt(ti.max(n2, radius * radius)) - eps)
+            shrink = radius / ti.sqrt(ti.max(n2, radius * radius))
+            eps_new = eps + outside * (tr / 3.0 + shrink * dev - eps)
+            alpha = 1.0 + outside * (shrink - 1.0)
         elif ti.static(model == ID["snow"]):
             # Stomakhin et al. 2013: principal stretches clamped to [1 - theta_c, 1 + theta_s]
             eps_new = ti.min(ti.max(eps, ti.log(1.0 - prm[0])), ti.log(1.0 + prm[1]))
-        # exp(0) - 1 == 0 exactly: an unprojected F is stored unchanged, bit for bit
-        scale = ti.exp(eps_new - eps) - 1.0
-        F_new = F + Q @ ti.Matrix([[scale[0], 0.0, 0.0], [0.0, scale[1], 0.0], [0.0, 0.0, scale[2]]]) \
-            @ Q.transpose() @ F
-        tau = ti.Matrix.zero(float, 3, 3)
+        # exp(0) - 1 == 0 exactly (with zero slope): an unprojected F is stored unchanged, bit for bit
+        scale = ti.exp(eps_new - eps)
+        scale_slope = scale * (alpha - 1.0) / (2.0 * a)
+        k = ti.Vector.zero(float, 3)
+        k_slope = mu * alpha / a
         if ti.static(model == ID["snow"]):
             # neo-Hookean with both moduli hardened by exp(xi (1 - J_p)), bounded to keep the
-            # wave speed (and so the time step) and the gradients bounded
+            # wave speed (and so the time step) and the gradients bounded; F_new F_new^T has
+            # the clamped eigenvalues exp(2 eps_new)
+            inside = ti.cast(eps == eps_new, float)
+            scale_slope = -(1.0 - inside) * scale / (2.0 * a)
             jp = self.Jp[s, p] * ti.exp((eps - eps_new).sum())
             self.Jp[so, p] = jp
             h = ti.min(ti.max(ti.exp(prm[2] * (1.0 - jp)), MIN_HARDENING), prm[3])
-            tau = h * (mu * (F_new @ F_new.transpose() - ti.Matrix.identity(float, 3))
-                       + la * eps_new.sum() * ti.Matrix.identity(float, 3))
+            k = h * (mu * (ti.exp(2.0 * eps_new) - 1.0) + la * eps_new.sum())
+            k_slope = h * mu * inside
         else:  # Hencky: tau = 2 mu eps + lambda tr(eps) I, in the principal frame
             k = 2.0 * mu * eps_new + la * eps_new.sum()
-            tau = Q @ ti.Matrix([[k[0], 0.0, 0.0], [0.0, k[1], 0.0], [0.0, 0.0, k[2]]]) @ Q.transpose()
-        return F_new, tau
+        F_new = F + self._spectral(Q0, A, a, scale - 1.0, scale_slope) @ F
+        return F_new, self._spectral(Q0, A, a, k, k_slope)
 
     @ti.func
     def _constitutive(self, model: ti.template(), p, s, so):
@@ -408,6 +469,43 @@ class _Storage:
                     F_new, tau = self._constitutive(model, p, s, so)
         return F_new, tau
 
+    @ti.func
+    def _muscle_stress(self, p, F, t):
+        """Kirchhoff stress of particle p's muscle at action row t (materials.MUSCLE_MODELS)."""
+        Ff = F @ self.fiber[p]
+        a = self.act[t].dot(self.muscle[p])
+        s = self.muscle_ratio[p] * self.E[p]
+        tau = s * a * Ff.outer_product(Ff)
+        if ti.static(self.muscle_model == "energy"):
+            tau = 4.0 * s * (Ff.dot(Ff) - 1.0 + a) * Ff.outer_product(Ff)
+        return tau
+
+    @ti.kernel
+    def _stress(self, model: ti.template(), s: ti.i32, scratch: ti.i32, t: ti.i32, start: ti.i32, end: ti.i32,
+                out: ti.types.ndarray()):
+        """Kirchhoff stress that the next substep applies to particles [start, end) of one model
+        (constitutive at the trial F, plus the muscle at action row t); forward only. State a
+        plastic model writes (snow's J_p) goes to the `scratch` slot."""
+        for p in range(start, end):
+            if ti.static(MATERIALS[MODEL_NAMES[model]].plastic and model != ID["water"]):
+                self.frame[p] = self._frame(s, p)
+            F, tau = self._constitutive(model, p, s, scratch)
+            if ti.static(self.has_muscles):
+                tau += self._muscle_stress(p, F, t)
+            for i, j in ti.static(ti.ndrange(3, 3)):
+                out[p, i, j] = tau[i, j]
+
+    @ti.func
+    def _frame(self, s, p):
+        """Eigenvectors of the trial b = F F^T of particle p in slot s (cyclic Jacobi)."""
+        F = (ti.Matrix.identity(float, 3) + self.dt[None] * self.C[s, p]) @ self.F[s, p]
+        A = F @ F.transpose()
+        Q = ti.Matrix.identity(float, 3)
+        for _ in ti.static(range(JACOBI_SWEEPS)):
+            for plane in ti.static(range(3)):
+                A, Q = self._rotate(A, Q, plane)
+        return Q
+
     @ti.kernel
     def _eigen_frames(self, s: ti.i32, start: ti.i32, end: ti.i32):
         """Eigenvectors of b = F F^T (trial F) of particles [start, end); never differentiated.
@@ -416,13 +514,7 @@ class _Storage:
         differentiated in reverse mode is far too slow for Taichi to compile.
         """
         for p in range(start, end):
-            F = (ti.Matrix.identity(float, 3) + self.dt[None] * self.C[s, p]) @ self.F[s, p]
-            A = F @ F.transpose()
-            Q = ti.Matrix.identity(float, 3)
-            for _ in ti.static(range(JACOBI_SWEEPS)):
-                for plane in ti.static(range(3)):
-                    A, Q = self._rotate(A, Q, plane)
-            self.frame[p] = Q
+            self.frame[p] = self._frame(s, p)
 
     @ti.kernel
     def _constitutive_update(self, model: ti.template(), s: ti.i32, so: ti.i32, start: ti.i32, end: ti.i32):
@@ -442,7 +534,6 @@ class _Storage:
             base = self._base(self.x[s, p])
             fx = self.x[s, p] * inv_dx - ti.cast(base, float)
             w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-            E = self.E[p]
             F = ti.Matrix.zero(float, 3, 3)
             tau = ti.Matrix.zero(float, 3, 3)
             if ti.static(self.has_params):  # computed by _constitutive_update
@@ -452,9 +543,7 @@ class _Storage:
                 F, tau = self._update(p, s, so)
                 self.F[so, p] = F
             if ti.static(self.has_muscles):
-                Ff = F @ self.fiber[p]
-                a = self.act[t].dot(self.muscle[p])
-                tau += 4.0 * self.muscle_ratio[p] * E * (Ff.dot(Ff) - 1.0 - a) * Ff.outer_product(Ff)
+                tau += self._muscle_stress(p, F, t)
             vol = self.vol[p]
             mass = self.rho[p] * vol
             affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * self.C[s, p]
@@ -571,18 +660,36 @@ def _model_runs(material: np.ndarray) -> list[tuple[int, int, int]]:
     return [(int(material[a]), int(a), int(b)) for a, b in zip(starts, ends)]
 
 
-_free: dict[tuple[int, Layout], list[_Storage]] = {}
+_free: "OrderedDict[int, tuple[tuple[int, Layout], _Storage]]" = OrderedDict()  # released storages, oldest first
 
 
 def _acquire(layout: Layout) -> _Storage:
     """A storage for `layout`: a released one if there is one (no compile), else a new one."""
-    free = _free.get((runtime.generation, layout))
-    return free.pop() if free else _Storage(layout)
+    for key, (wanted, storage) in reversed(_free.items()):
+        if wanted == (runtime.generation, layout):
+            del _free[key]
+            return storage
+    return _Storage(layout)
 
 
 def _release(generation: int, storage: _Storage) -> None:
-    if generation == runtime.generation:
-        _free.setdefault((generation, storage.layout), []).append(storage)
+    """Keep a closed simulator's storage for reuse, freeing the oldest beyond MAX_FREE_STORAGES."""
+    if generation != runtime.generation:
+        return
+    _free[id(storage)] = ((generation, storage.layout), storage)
+    while len(_free) > MAX_FREE_STORAGES:
+        _, (_, oldest) = _free.popitem(last=False)
+        oldest.free()
+
+
+def _unit_fibers(fiber: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unit fibres, their given lengths); a zero-length fibre is an error naming the particle."""
+    length = np.linalg.norm(fiber, axis=1)
+    bad = np.flatnonzero(~(length > 1e-12))
+    if len(bad):
+        raise ValueError(f"fiber of particle {bad[0]} is {fiber[bad[0]].tolist()}: fibres must be non-zero "
+                         "directions (they are normalised)")
+    return fiber / length[:, None], length
 
 
 class Simulator:
@@ -616,6 +723,7 @@ class Simulator:
             grid_shape=scene.grid_shape,
             models=tuple(sorted(set(int(m) for m in particles.material))),
             has_muscles=particles.n_actuators > 0 and bool(np.any(particles.muscle_ratio > 0)),
+            muscle_model=scene.muscle_model,
             has_terrain=scene.terrain.kind != "none",
             boundary_cells=scene.boundary_cells,
             requires_grad=requires_grad,
@@ -626,6 +734,8 @@ class Simulator:
         self._initial_CF: tuple[np.ndarray, np.ndarray] | None = None
         self._initial_jp: np.ndarray | None = None
         self.rollouts = 0
+        self._changes = 0  # bumped by anything that alters the state a rollout's backward pass replays
+        self._rollout_changes = -1
         self._set_constants()
         self.reset(particles)
 
@@ -651,10 +761,11 @@ class Simulator:
         field.from_numpy(full)
 
     def reset(self, particles: Particles | None = None) -> None:
-        """Go back to the initial state, optionally of new particles.
+        """Go back to the initial state, optionally of new particles (which reset C, F and J_p).
 
         New particles (for the same scene domain and terrain) must have the same count,
-        actuators and material models; the CFL time step is recomputed for them.
+        actuators and material models; the CFL time step is recomputed for them. The
+        simulator keeps its own copy: later changes to `particles` do not reach it.
         """
         self._check_alive()
         if particles is not None:
@@ -662,11 +773,10 @@ class Simulator:
                     not set(particles.material.tolist()) <= set(self.layout.models):
                 raise ValueError("reset() needs particles with the same count, actuators and "
                                  "material models as the simulator was built for")
-            self.particles = particles
-            self.timestep = time_step(self.scene, particles)
-            self.k.dt[None] = self.timestep.dt
             self._initial_CF = None
             self._initial_jp = None
+            self._use(particles)
+        self._changes += 1
         p, r, k = self.particles, self.np_real, self.k
         self._put(k.vol, p.volume.astype(r))
         self._put(k.E, p.youngs_modulus.astype(r))
@@ -674,11 +784,11 @@ class Simulator:
         self._put(k.rho, p.density.astype(r))
         self._put(k.material, p.material.astype(np.int32))
         self._put(k.muscle, (p.muscle if self.n_actuators else np.zeros((self.n, 1))).astype(r))
-        self._put(k.fiber, p.fiber.astype(r))
+        self._put(k.fiber, self._unit_fiber.astype(r))
         self._put(k.muscle_ratio, p.muscle_ratio.astype(r))
         if k.has_params:
             self._put(k.params, p.params.astype(r))
-        self._runs = _model_runs(p.material) if k.has_params else []
+        self._runs = _model_runs(p.material)
         tracked = p.robot if p.robot.any() else np.ones(self.n, dtype=bool)
         self._probe_density = np.where(tracked, p.density, 0.0)  # mass of particle p = this * volume
         self._put(k.probe_w, self._probe_density.astype(r))
@@ -690,37 +800,91 @@ class Simulator:
         self.frame = 0
         self._slot = 0
 
+    def _use(self, particles: Particles) -> None:
+        """Take a private copy of `particles` and the CFL time step that they need."""
+        timestep = time_step(self.scene, particles)
+        self._unit_fiber, self._fiber_length = _unit_fibers(particles.fiber)
+        self.particles = replace(particles, **{name: np.array(getattr(particles, name), copy=True)
+                                               for name in Particles.__dataclass_fields__})
+        self.timestep = timestep
+        self.k.dt[None] = timestep.dt
+
     def set_initial_state(self, x=None, v=None, C=None, F=None, Jp=None) -> None:
         """Replace parts of the initial state (numpy, live particles only) and reset to it.
 
         Positions and velocities default to the particles'; C to zero, F to identity and the
-        plastic volume ratio `Jp` (snow only) to one.
+        plastic volume ratio `Jp` (snow only) to one. A faster start gets a smaller time step.
         """
+        if Jp is not None and not self.k.has_jp:
+            raise ValueError("Jp is state only in scenes with snow")
+        given = {name: np.asarray(value, dtype=np.float64).reshape(self.n, 3)
+                 for name, value in (("x", x), ("v", v)) if value is not None}
+        self._use(replace(self.particles, **given))
         if Jp is not None:
-            if not self.k.has_jp:
-                raise ValueError("Jp is state only in scenes with snow")
-            self._initial_jp = np.asarray(Jp, dtype=np.float64).reshape(self.n)
-        p = self.particles
-        for name, value in (("x", x), ("v", v)):
-            if value is not None:
-                setattr(p, name, np.asarray(value, dtype=np.float64).reshape(self.n, 3))
+            self._initial_jp = np.asarray(Jp, dtype=np.float64).reshape(self.n).copy()
         if C is not None or F is not None:
             C0, F0 = self._initial_CF or (np.zeros((self.n, 3, 3)), np.tile(np.eye(3), (self.n, 1, 1)))
-            self._initial_CF = (C0 if C is None else np.asarray(C, dtype=np.float64).reshape(self.n, 3, 3),
-                                F0 if F is None else np.asarray(F, dtype=np.float64).reshape(self.n, 3, 3))
+            self._initial_CF = (C0 if C is None else np.asarray(C, dtype=np.float64).reshape(self.n, 3, 3).copy(),
+                                F0 if F is None else np.asarray(F, dtype=np.float64).reshape(self.n, 3, 3).copy())
         self.reset()
 
     def set_design(self, volume=None, youngs_modulus=None, muscle=None, fiber=None) -> None:
-        """Overwrite per-particle design fields (numpy); the initial state is reset."""
+        """Overwrite per-particle design fields (numpy) and reset to the initial state.
+
+        The time step is recomputed (a stiffer design gets a smaller one). Fibres may have any
+        non-zero length: the engine uses their directions, and `backward` returns the gradient
+        with respect to the vectors given.
+        """
         p = self.particles
+        given = {}
         for name, value in (("volume", volume), ("youngs_modulus", youngs_modulus),
                             ("muscle", muscle), ("fiber", fiber)):
             if value is not None:
                 value = np.asarray(value, dtype=np.float64)
                 if value.shape != getattr(p, name).shape:
                     raise ValueError(f"{name} must have shape {getattr(p, name).shape}, got {value.shape}")
-                setattr(p, name, value)
+                given[name] = value
+        self._use(replace(p, **given))
         self.reset()
+
+    def snapshot(self) -> tuple:
+        """Everything a rollout starts from (design, initial state); see `restore`."""
+        return self.particles, self._initial_CF, self._initial_jp
+
+    def restore(self, snapshot: tuple) -> None:
+        """Return to a `snapshot`: its design and initial state, with their time step."""
+        particles, self._initial_CF, self._initial_jp = snapshot
+        self._use(particles)
+        self.reset()
+
+    def stress(self, action: np.ndarray | None = None) -> np.ndarray:
+        """(N, 3, 3) Kirchhoff stress the next substep applies: each particle's model at its trial
+        F (plastic models after their return mapping) plus its muscle at `action` (default 0).
+        Forward only; the state is unchanged."""
+        self._check_alive()
+        self._changes += 1  # action row 0 is overwritten
+        self._hold(action, 0)
+        out = np.zeros((self.n, 3, 3), self.np_real)
+        scratch = self._slot + 1 if self._slot + 1 < self.layout.slots else 0
+        for model, start, end in self._runs:
+            self.k._stress(model, self._slot, scratch, 0, start, end, out)
+        return out.astype(np.float64)
+
+    def _hold(self, action, row: int) -> None:
+        """Write `action` (default zeros) into action row `row`, checking its shape and bound."""
+        if not self.n_actuators:
+            return
+        a = np.zeros(self.n_actuators) if action is None else np.asarray(action, dtype=np.float64)
+        if a.shape != (self.n_actuators,):
+            raise ValueError(f"action must have shape ({self.n_actuators},), got {a.shape}")
+        self._check_bound(a)
+        self.k.act[row] = a.astype(self.np_real)
+
+    def _check_bound(self, actions: np.ndarray) -> None:
+        worst = float(np.abs(actions).max(initial=0.0))
+        if not worst <= self.scene.max_action:
+            raise ValueError(f"action {worst:.4g} exceeds scene.max_action = {self.scene.max_action} (the time "
+                             "step is sized for it); scale the actions or raise max_action")
 
     def _check_alive(self) -> None:
         if self.k is None:
@@ -743,7 +907,7 @@ class Simulator:
         else:
             self.k._bounds(s, self.n)
         self.k._clear_grid()
-        for model, start, end in self._runs:
+        for model, start, end in self._runs if self.k.has_params else ():
             if model in HENCKY_PLASTIC:
                 self.k._eigen_frames(s, start, end)
             self.k._constitutive_update(model, s, so, start, end)
@@ -759,7 +923,7 @@ class Simulator:
         if self.k.has_params:
             self.k.tau.grad.fill(0)
         self.k._p2g.grad(s, s + 1, t, self.n)
-        for model, start, end in self._runs:
+        for model, start, end in self._runs if self.k.has_params else ():
             self.k._constitutive_update.grad(model, s, s + 1, start, end)
 
     def _guard(self, slot: int, substep: int) -> None:
@@ -787,11 +951,8 @@ class Simulator:
     def step(self, action: np.ndarray | None = None, frames: int = 1) -> None:
         """Advance `frames` control steps holding `action` (K,) over their substeps (no gradients)."""
         self._check_alive()
-        if self.n_actuators:
-            a = np.zeros(self.n_actuators) if action is None else np.asarray(action, dtype=np.float64)
-            if a.shape != (self.n_actuators,):
-                raise ValueError(f"action must have shape ({self.n_actuators},), got {a.shape}")
-            self.k.act[0] = a.astype(self.np_real)
+        self._changes += 1
+        self._hold(action, 0)
         if self._slot > 1:  # after a rollout: continue from its last state
             self.k._copy_slot(self._slot, 0, self.n)
             self._slot = 0
@@ -842,12 +1003,14 @@ class Simulator:
         S = checkpoint_every or self.segment
         if not 1 <= S <= self.segment:
             raise ValueError(f"checkpoint_every must be in [1, {self.segment}], got {S}")
-        self._rollout_segment = S
-        self.rollouts += 1  # lets callers (the torch bridge) tell whether backward() is still theirs
-        actions = np.asarray(actions, dtype=np.float64).reshape(-1, self.n_actuators)
+        actions = np.asarray(actions, dtype=np.float64)
+        actions = actions.reshape(len(actions), self.n_actuators) if actions.ndim else actions.reshape(-1, 0)
         T = len(actions)
         if not 1 <= T <= self.max_frames:
             raise ValueError(f"a rollout takes 1 to max_frames={self.max_frames} frames, got {T}")
+        self._check_bound(actions)
+        self._rollout_segment = S
+        self.rollouts += 1  # lets callers (the torch bridge) tell whether backward() is still theirs
         self.reset()
         act = np.zeros((self.max_frames + 1, max(self.n_actuators, 1)))
         act[:T, :self.n_actuators] = actions
@@ -873,6 +1036,7 @@ class Simulator:
                 self.k._copy_slot(L, 0, self.n)
                 self._slot = 0
         x, v, _, _ = self.particles_state(self._slot)
+        self._rollout_changes = self._changes
         self.frame = T
         self._tracked_mass = float(self._probe_density @ self.particles.volume)
         self._com = (self.k.com_x.to_numpy()[:T + 1] / self._tracked_mass,
@@ -880,15 +1044,25 @@ class Simulator:
         return Rollout(self._com[0].astype(np.float64), self._com[1].astype(np.float64),
                        x.astype(np.float64), v.astype(np.float64))
 
-    def backward(self, com_x=None, com_v=None, x=None, v=None) -> Gradients:
+    @property
+    def rollout_is_current(self) -> bool:
+        """True while nothing changed the simulator since the last rollout, so backward() may run."""
+        return self._changes == self._rollout_changes
+
+    def backward(self, com_x=None, com_v=None, x=None, v=None, F=None) -> Gradients:
         """Back-propagate d loss / d outputs of the last `rollout` to its inputs (repeatable).
 
-        Each segment is recomputed from its checkpoint, then differentiated substep by substep
-        in reverse; the gradient of a segment's first state carries into the previous one.
+        `com_x`, `com_v` (T+1, 3) and the final particles' `x`, `v` (N, 3) and `F` (N, 3, 3)
+        are the loss's gradients with respect to those outputs (None: zero). Each segment is
+        recomputed from its checkpoint, then differentiated substep by substep in reverse; the
+        gradient of a segment's first state carries into the previous one.
         """
         self._check_alive()
         if not getattr(self, "_checkpoints", None):
             raise RuntimeError("backward() needs a preceding rollout()")
+        if not self.rollout_is_current:
+            raise RuntimeError("the simulator changed since the last rollout() (step, reset, set_design, "
+                               "set_initial_state or stress overwrite what backward() replays); run rollout() again")
         T, spf, S, n, r = self._T, self.timestep.substeps, self._rollout_segment, self.n, self.np_real
         for f in (self.k.vol, self.k.E, self.k.muscle, self.k.fiber, self.k.act, self.k.com_x, self.k.com_v):
             f.grad.fill(0)
@@ -903,10 +1077,9 @@ class Simulator:
                 full[:T + 1] = g / M
                 dL_dM -= float((g * com).sum()) / M
             field.grad.from_numpy(full)
-        zeros33 = np.zeros((n, 3, 3), r)
         carry = (np.ascontiguousarray(np.zeros((n, 3)) if x is None else x, dtype=r),
-                 np.ascontiguousarray(np.zeros((n, 3)) if v is None else v, dtype=r), zeros33, zeros33,
-                 np.zeros(n, r))
+                 np.ascontiguousarray(np.zeros((n, 3)) if v is None else v, dtype=r), np.zeros((n, 3, 3), r),
+                 np.ascontiguousarray(np.zeros((n, 3, 3)) if F is None else F, dtype=r), np.zeros(n, r))
         total = T * spf
         starts = list(range(0, total, S))
         for k in reversed(range(len(starts))):
@@ -933,14 +1106,17 @@ class Simulator:
             if self.k.has_jp:
                 self.k._save_jp_grad(0, n, carry[4])
         K = self.n_actuators
+        fiber = self.k.fiber.grad.to_numpy()[:n].astype(np.float64)
+        unit = self._unit_fiber
         grads = Gradients(
             actions=self.k.act.grad.to_numpy()[:T, :K].astype(np.float64),
             volume=self.k.vol.grad.to_numpy()[:n].astype(np.float64) + dL_dM * self._probe_density,
             youngs_modulus=self.k.E.grad.to_numpy()[:n].astype(np.float64),
             muscle=self.k.muscle.grad.to_numpy()[:n, :K].astype(np.float64),
-            fiber=self.k.fiber.grad.to_numpy()[:n].astype(np.float64),
-            x0=carry[0].astype(np.float64), v0=carry[1].astype(np.float64))
-        for name in ("actions", "volume", "youngs_modulus", "x0", "v0"):
-            if not np.isfinite(getattr(grads, name)).all():
+            # the engine used f / |f|: project out the radial part and divide by |f|
+            fiber=(fiber - (fiber * unit).sum(1, keepdims=True) * unit) / self._fiber_length[:, None],
+            x0=carry[0].astype(np.float64), v0=carry[1].astype(np.float64), F0=carry[3].astype(np.float64))
+        for name, value in vars(grads).items():
+            if not np.isfinite(value).all():
                 raise SimulationError(f"the backward pass produced non-finite gradients for {name}")
         return grads

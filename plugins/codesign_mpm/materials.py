@@ -82,19 +82,34 @@ def pack_params(kind: str, friction_angle: float = 30.0, cohesion: float = 0.0, 
     return values + (0.0,) * (N_PARAMS - len(values))
 
 
-def wave_speed(youngs_modulus: float, poisson_ratio: float, density: float,
-               muscle_stiffness: float = 0.0) -> float:
-    """Fastest elastic (P-)wave speed, sqrt((lambda + 2 mu + 8 s) / rho).
+MUSCLE_MODELS = ("active", "energy")
+"""How actuation a = u . r_p acts along the unit fibre f (Kirchhoff stress added to the body's):
 
-    The muscle energy s (|Ff|^2 - 1 - a)^2 adds 8 s to the axial modulus at rest (second
-    derivative in the fibre stretch), so actuated bodies need a proportionally smaller step.
+- ``active`` (default; the released SoftZoo code, Genesis): tau += s a (F f)(F f)^T, linear in
+  the action and force-free at a = 0; a > 0 is a tension along the fibre, so it contracts.
+- ``energy`` (the paper's formula): the energy s (|F f|^2 - 1 + a)^2 gives
+  tau += 4 s (|F f|^2 - 1 + a)(F f)(F f)^T, a passive fibre that also contracts for a > 0
+  (its rest length is sqrt(1 - a)) and adds 8 s to the axial modulus.
+"""
+
+
+def muscle_modulus(model: str, stiffness: float, max_action: float) -> float:
+    """Largest axial tangent modulus a muscle of stiffness s adds, for the CFL condition.
+
+    Active: tau = s a (F f)(F f)^T stiffens the fibre by 2 s a, at most 2 s max_action.
+    Energy: the second derivative of s (|F f|^2 - 1 + a)^2 in the fibre stretch, 8 s at rest.
     """
+    return 2.0 * stiffness * max_action if model == "active" else 8.0 * stiffness
+
+
+def wave_speed(youngs_modulus: float, poisson_ratio: float, density: float, added_modulus: float = 0.0) -> float:
+    """Fastest elastic (P-)wave speed, sqrt((lambda + 2 mu + added) / rho); muscles add to the modulus."""
     mu, lam = lame(youngs_modulus, poisson_ratio)
-    return math.sqrt((lam + 2 * mu + 8 * muscle_stiffness) / density)
+    return math.sqrt((lam + 2 * mu + added_modulus) / density)
 
 
 def model_wave_speed(model: int, youngs_modulus: float, poisson_ratio: float, density: float,
-                     muscle_stiffness: float, params: tuple[float, ...]) -> float:
+                     added_modulus: float, params: tuple[float, ...]) -> float:
     """Fastest wave speed a particle of this model can carry, for the CFL condition.
 
     Water: sqrt(K / rho) from its bulk modulus. Snow: the elastic speed at the largest
@@ -103,7 +118,7 @@ def model_wave_speed(model: int, youngs_modulus: float, poisson_ratio: float, de
     if model == ID["water"]:
         return math.sqrt(params[0] / density)
     stiffening = max(params[3], 1.0) if model == ID["snow"] else 1.0
-    return wave_speed(youngs_modulus * stiffening, poisson_ratio, density, muscle_stiffness)
+    return wave_speed(youngs_modulus * stiffening, poisson_ratio, density, added_modulus)
 
 
 def viscosity(model: int, params: tuple[float, ...]) -> float:

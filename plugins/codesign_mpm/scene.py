@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass, field
 from typing import List, Optional
 
-from codesign_mpm.materials import MATERIALS, material_names
+from codesign_mpm.materials import MATERIALS, MUSCLE_MODELS, material_names
 
 SHAPE_KINDS = ("box", "sphere", "ellipsoid", "capsule", "mesh", "points", "voxels", "layer")
 TERRAIN_KINDS = ("none", "flat", "incline", "perlin")
@@ -64,8 +64,9 @@ class MaterialSpec:
 class MuscleSpec:
     """Muscle groups laid out as a grid over the body's bounding box, all fibres along `fiber`.
 
-    `groups: [2, 2, 1]` gives four actuators (front/back x bottom/top). The muscle energy is
-    s (|F f|^2 - (1 + a))^2 with s = stiffness_ratio * E_p and a = u . r_p.
+    `groups: [2, 2, 1]` gives four actuators (front/back x bottom/top). Particle p's actuation
+    is a = u . r_p and its muscle stiffness s = stiffness_ratio * E_p; how they make a stress
+    is the scene's `muscle_model` (see `codesign_mpm.materials.MUSCLE_MODELS`).
     """
 
     groups: List[int] = field(default_factory=lambda: [2, 2, 1])
@@ -80,7 +81,7 @@ class BodySpec:
     material: MaterialSpec = field(default_factory=MaterialSpec)
     center: List[float] = field(default_factory=lambda: [0.5, 0.5, 0.5])
     rotation: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # degrees about x, then y, then z
-    rest_on_terrain: bool = False  # move the body down/up so it sits one cell above the terrain
+    rest_on_terrain: bool = False  # move the body down/up so its lowest face touches the terrain
     rest_offset: float = 0.0  # with rest_on_terrain: extra height (e.g. the thickness of a layer to rest on)
     velocity: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     particles_per_cell: int = 8  # a cube number: 1, 8, 27 or 64 particles on a regular lattice
@@ -120,6 +121,8 @@ class Scene:
     arch: str = "cpu"
     grid_region: str = "bbox"  # bbox: clear and update only the nodes particles touch; full: the whole grid
     boundary_cells: int = 3  # walls: nodes this close to the domain edge block outward motion
+    muscle_model: str = "active"  # active: tau += s a (Ff)(Ff)^T; energy: s (|Ff|^2 - 1 + a)^2 (materials.MUSCLE_MODELS)
+    max_action: float = 1.0  # largest |action| the time step is sized for; larger actions are refused
 
     @property
     def grid_shape(self) -> tuple[int, int, int]:
@@ -146,6 +149,8 @@ def validate_scene(scene: Scene) -> None:
         _fail("dx", scene.dx, f"too coarse for size {list(scene.size)}: need at least "
               f"{2 * scene.boundary_cells + 4} cells along every axis")
     _check_vec("gravity", scene.gravity)
+    if not (scene.max_action > 0 and math.isfinite(scene.max_action)):
+        _fail("max_action", scene.max_action, "must be a finite number > 0")
     if not scene.frame_dt > 0:
         _fail("frame_dt", scene.frame_dt, "must be > 0")
     if not 0 < scene.cfl <= 1:
@@ -154,7 +159,8 @@ def validate_scene(scene: Scene) -> None:
         _fail("dt", scene.dt, "must be > 0 (or null to derive it from the CFL condition)")
     for key, value, allowed in (("dtype", scene.dtype, DTYPES), ("arch", scene.arch, ARCHS),
                                 ("grid_region", scene.grid_region, GRID_REGIONS),
-                                ("terrain.kind", scene.terrain.kind, TERRAIN_KINDS)):
+                                ("terrain.kind", scene.terrain.kind, TERRAIN_KINDS),
+                                ("muscle_model", scene.muscle_model, MUSCLE_MODELS)):
         if value not in allowed:
             _fail(key, value, f"one of {', '.join(allowed)}")
     t = scene.terrain

@@ -1,0 +1,136 @@
+"""Gradients through every material against central finite differences (float64).
+
+For the elastic robot alone (ground) and on each ground cover (sand, clay, mud, snow, water),
+everything a rollout differentiates (actions, volume, Young's modulus, muscle membership,
+fibre, x0, v0) is checked over enough frames that the cover carries the robot's weight.
+Each plastic cover's stress Jacobian is then checked on its own: one substep from rest with
+the cover held at a chosen deformation (F = I or confined, where eigenvalues coincide;
+uniaxial compression; a generic F), differentiated with respect to the initial F.
+
+One simulator layout per environment: the first check compiles the backward kernels (a few
+minutes each on a cold cache), and the Jacobian check reuses them from the pool.
+"""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from codesign_mpm.engine import Simulator
+from test_environments import make_env, random_actions  # same folder: pytest puts it on sys.path
+
+pytestmark = pytest.mark.slow
+
+COVERS = {"ground": None, "ice": None, "desert": "sand", "clay": "clay", "wetland": "mud", "snow": "snow",
+          "shallow_water": "water", "ocean": "water"}
+T = 8  # frames: the cover has settled onto the terrain and carries the robot
+MAX_FRAMES, SEGMENT = 12, 64  # shared by both simulators of an environment, so they share compiled kernels
+
+
+def central(f, eps: float) -> float:
+    return (f(eps) - f(-eps)) / (2 * eps)
+
+
+def assert_matches(analytic: float, numeric: float, what) -> None:
+    assert analytic == pytest.approx(numeric, rel=1e-4, abs=1e-10), what
+
+
+@pytest.mark.parametrize("name", list(COVERS))
+def test_every_input_gradient_matches_finite_differences(name):
+    env = make_env(name, dtype="float64")
+    sim = Simulator(env.scene, env.particles, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=SEGMENT)
+    p = env.particles
+    rng = np.random.default_rng(2)
+    actions = random_actions(env, T, seed=1)
+    w_com, wx = rng.normal(size=(T + 1, 3)), rng.normal(size=(p.n, 3)) / p.n
+    start = sim.snapshot()
+
+    def loss(a=actions) -> float:
+        out = sim.rollout(a, checkpoint_every=7)
+        return float((w_com * out.com_x).sum() + (wx * out.x).sum())
+
+    try:
+        loss()
+        g = sim.backward(com_x=w_com, x=wx)
+        robot, cover = np.flatnonzero(p.robot), np.flatnonzero(~p.robot)
+        foot = robot[np.argmin(p.x[robot, 1])]  # a robot particle on the ground (or in the cover)
+        cases = [("actions", (0, 0), 1e-6), ("actions", (T - 1, 3), 1e-6), ("volume", foot, 1e-5 * p.volume[foot]),
+                 ("youngs_modulus", foot, 1e-6 * p.youngs_modulus[foot]), ("muscle", (foot, 1), 1e-6),
+                 ("fiber", (foot, 1), 1e-6), ("x0", (foot, 0), 1e-6), ("v0", (foot, 1), 1e-6)]
+        if len(cover):
+            assert np.abs(g.x0[cover]).max() > 0, "the cover should influence the loss"
+            under = cover[np.argmax(np.abs(g.v0[cover]).sum(1))]  # the cover particle that matters most
+            cases += [("x0", (under, 1), 1e-6), ("v0", (under, 0), 1e-6), ("volume", under, 1e-5 * p.volume[under])]
+            if COVERS[name] != "water":  # water's stiffness is its bulk modulus, not E
+                cases.append(("youngs_modulus", under, 1e-6 * p.youngs_modulus[under]))
+
+        def perturbed(field, index, eps):
+            sim.restore(start)
+            if field == "actions":
+                a = actions.copy()
+                a[index] += eps
+                return loss(a)
+            source = {"x0": "x", "v0": "v"}.get(field, field)
+            value = getattr(p, source).copy()
+            value[index] += eps
+            if field in ("x0", "v0"):
+                sim.set_initial_state(**{source: value})
+            else:
+                sim.set_design(**{field: value})
+            return loss()
+
+        for field, index, eps in cases:
+            numeric = central(lambda e: perturbed(field, index, e), eps)
+            assert_matches(getattr(g, field)[index], numeric, (name, field, index))
+    finally:
+        sim.close()
+        env.close()
+
+
+CONFINED = np.diag([0.99, 0.99, 0.99])
+STATES = {
+    "rest": np.eye(3),  # three equal eigenvalues
+    "compressed": np.diag([1.0, 0.97, 1.0]),  # uniaxial: x and z equal; clay and mud yield, snow clamps
+    "generic": 0.985 * np.eye(3) + 0.01 * np.random.default_rng(5).normal(size=(3, 3)),
+}
+
+
+@pytest.mark.parametrize("name", ["desert", "clay", "wetland", "snow", "shallow_water"])
+def test_stress_jacobian_of_each_cover_matches_finite_differences(name):
+    """d loss / d F0 after one substep from rest goes through the cover's stress and return mapping."""
+    env = make_env(name, dtype="float64")
+    scene = replace(env.scene, gravity=[0.0, 0.0, 0.0], frame_dt=1e-5)  # one substep per frame
+    sim = Simulator(scene, env.particles, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=SEGMENT)
+    p = env.particles
+    cover = np.flatnonzero(~p.robot)
+    rng = np.random.default_rng(3)
+    wv, wF = rng.normal(size=(p.n, 3)), rng.normal(size=(p.n, 3, 3))
+    try:
+        assert sim.timestep.substeps == 1
+        for state, F_cover in STATES.items():
+            if name == "desert" and state == "rest":
+                F_cover = CONFINED  # sand at F = I sits on its apex (no cohesion): not differentiable there
+            F0 = np.tile(np.eye(3), (p.n, 1, 1))
+            F0[cover] = F_cover
+            probe = cover[len(cover) // 2]
+
+            def loss(F) -> float:
+                sim.set_initial_state(F=F)
+                out = sim.rollout(np.zeros((1, env.action_dim)))
+                _, _, _, F_end = sim.particles_state()
+                return float((wv * out.v).sum() + (wF * F_end).sum())
+
+            loss(F0)
+            analytic = sim.backward(v=wv, F=wF).F0[probe]
+            numeric = np.zeros((3, 3))
+            for i in range(3):
+                for j in range(3):
+                    def shifted(e):
+                        F = F0.copy()
+                        F[probe, i, j] += e
+                        return loss(F)
+                    numeric[i, j] = central(shifted, 1e-7)
+            np.testing.assert_allclose(analytic, numeric, rtol=1e-4, atol=1e-6 * np.abs(numeric).max(),
+                                       err_msg=f"{name} at {state}")
+    finally:
+        sim.close()
+        env.close()
