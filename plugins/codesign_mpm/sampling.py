@@ -153,7 +153,8 @@ def build_particles(scene: Scene) -> Particles:
 def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarray]:
     key = f"bodies[{i}]"
     per_axis = round(body.particles_per_cell ** (1 / 3))
-    offsets, total_volume = _shape_points(key, body.shape, scene.dx / per_axis)
+    spacing = scene.dx / per_axis
+    offsets, total_volume = _shape_points(key, body.shape, spacing)
     if len(offsets) == 0:
         raise SceneError(f"{key}.shape = {body.shape!r} is invalid: it holds no particle at "
                          f"dx={scene.dx}; make it larger or the grid finer")
@@ -165,7 +166,9 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
         ij = np.clip(np.round((offsets[:, [0, 2]] + center[[0, 2]]) / scene.dx).astype(int), 0,
                      np.asarray(heights.shape) - 1)
         ground = heights[ij[:, 0], ij[:, 1]].max()
-        center[1] = ground + body.rest_offset + scene.dx - offsets[:, 1].min()
+        # the lowest particles half a lattice spacing above the surface: the body's face touches it,
+        # with no free grid cell beneath for a ground cover to fill
+        center[1] = ground + body.rest_offset + spacing / 2 - offsets[:, 1].min()
     x = offsets + center
     margin = scene.dx * scene.boundary_cells
     lo_ok = (x >= margin).all()

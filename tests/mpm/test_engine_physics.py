@@ -155,11 +155,12 @@ def test_other_elastic_models_hold_a_resting_body(model):
 
 
 def test_elastic_bar_rings_at_its_analytic_frequency_and_converges():
-    from codesign_mpm.accuracy import REFERENCE, Setting, measure
+    """f = sqrt(E / rho) / (2 L) for a free-free bar with Poisson's ratio 0. The error is not
+    monotone in dx (where the bar's ends fall between nodes matters), so the test bounds it by
+    a line in dx at every resolution and compares the envelopes of coarse and fine grids."""
+    from codesign_mpm.accuracy import Setting, measure
 
-    coarse = measure(REFERENCE)
-    fine = measure(Setting(dx=1 / 48))
-    # f = sqrt(E / rho) / (2 L) for a free-free bar with Poisson's ratio 0
-    assert coarse["relative_error"] < 0.03
-    assert fine["relative_error"] < 0.015
-    assert fine["relative_error"] < 0.6 * coarse["relative_error"]
+    errors = {n: measure(Setting(dx=1 / n))["relative_error"] for n in (20, 24, 32, 48, 64)}
+    for n, error in errors.items():
+        assert error < 0.8 / n, (n, errors)  # measured: 1.5%, 0.0%, 2.1%, 0.8%, 0.2%
+    assert max(errors[48], errors[64]) < 0.5 * max(errors[20], errors[24], errors[32]), errors

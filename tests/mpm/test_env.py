@@ -65,21 +65,21 @@ def test_robot_rests_without_action_and_moves_with_a_gait(env):
     assert abs(gait[0]) > 20 * max(abs(still[0]), 1e-5)
 
 
-def test_a_push_slides_farther_on_ice_and_obeys_coulomb_on_ground():
-    # A robot launched at 1 unit/s decelerates at mu * g while sliding: d = v t - mu g t^2 / 2.
-    travelled = {}
+def test_a_pushed_robot_decelerates_at_mu_g_on_ground_and_on_ice():
+    """Launched at 1 unit/s, a sliding body's velocity falls linearly at mu g: 1.9 on ground, 0.19 on
+    ice (a frictionless floor would give 0, so the bound on ice tells the two apart)."""
     for name in ("ground", "ice"):
-        env = make_env(name)
+        env = make_env(name, horizon=40)
         env.base_particles.v[:, 0] = 1.0
         try:
-            displacement, results = rollout(env, [np.zeros(4)] * env.horizon)
+            _, results = rollout(env, [np.zeros(4)] * env.horizon)
         finally:
             env.close()
-        assert results[0].reward == pytest.approx(1.0, abs=0.1)  # movement_speed: COM velocity along x
-        t = env.horizon * env.control_dt
-        assert displacement[0] == pytest.approx(t - PRESETS[name].friction * GRAVITY * t * t / 2, abs=0.01)
-        travelled[name] = displacement[0]
-    assert travelled["ice"] > travelled["ground"] + 0.02
+        velocity = np.array([r.reward for r in results])  # movement_speed: COM velocity along x
+        assert velocity.min() > 0.2, "still sliding at the end, or the fit below means nothing"
+        t = env.control_dt * np.arange(1, env.horizon + 1)
+        slope = np.polyfit(t[5:], velocity[5:], 1)[0]  # after the first frames of landing on the ground
+        assert -slope == pytest.approx(PRESETS[name].friction * GRAVITY, rel=0.25), name
 
 
 @pytest.mark.parametrize("omega, sign", [(2.0, 1), (-2.0, -1)])

@@ -1,10 +1,9 @@
-"""The eight environment presets at test resolution (dx = 1/32): construction, forward,
-backward, and how robots interact with each ground cover."""
+"""The eight environment presets at test resolution (dx = 1/32): construction, forward, and
+how robots interact with each ground cover (their gradients: test_gradients.py)."""
 import numpy as np
 import pytest
 
 from codesign_mpm.config import PRESET_CONFIGS, PRESETS, CoverConfig, RobotConfig, TerrainConfig
-from codesign_mpm.engine import Simulator
 from codesign_mpm.env import LocomotionEnv
 
 ENVIRONMENTS = ["ground", "ice", "desert", "snow", "clay", "wetland", "shallow_water", "ocean"]
@@ -60,41 +59,6 @@ def test_fifty_control_steps_with_random_actions_stay_finite_and_move_the_robot(
         env.close()
 
 
-T = 3  # frames of the differentiable rollout
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("name", ENVIRONMENTS)
-def test_gradients_through_each_cover_are_finite_and_match_finite_differences(name):
-    """Backward through every environment in float64, checked against central differences."""
-    env = make_env(name, dtype="float64")
-    sim = Simulator(env.scene, env.particles, requires_grad=True, max_frames=12, checkpoint_every=64)
-    actions = random_actions(env, T, seed=1)
-    robot = env.particles.robot
-    weights = np.random.default_rng(2).normal(size=(T + 1, 3))
-
-    def loss(a):
-        out = sim.rollout(a, checkpoint_every=7)
-        return float((weights * out.com_x).sum())
-
-    try:
-        loss(actions)
-        g = sim.backward(com_x=weights)
-        assert np.isfinite(g.actions).all() and np.isfinite(g.x0).all() and np.isfinite(g.v0).all()
-        if (~robot).any():
-            assert np.abs(g.x0[~robot]).max() > 0, "the cover should influence the robot"
-        for index in [(0, 0), (T - 1, 3)]:
-            eps = 1e-6
-            plus, minus = actions.copy(), actions.copy()
-            plus[index] += eps
-            minus[index] -= eps
-            numeric = (loss(plus) - loss(minus)) / (2 * eps)
-            assert g.actions[index] == pytest.approx(numeric, rel=1e-4, abs=1e-8), index
-    finally:
-        sim.close()
-        env.close()
-
-
 def sink_depth(name: str, frames: int = 60) -> float:
     """How far a robot (twice water's density) set on top of a deep (0.1) layer sinks, without acting."""
     env = make_env(name, robot=RobotConfig(rest_on="cover", density=2e3),
@@ -133,15 +97,3 @@ def test_a_body_lighter_than_water_floats_and_a_heavier_one_sinks():
             env.close()
     assert final[500.0][1] > surface  # measured 0.299 (surface 0.25)
     assert final[3000.0][1] < surface - DX / 2 and final[3000.0][4] < 0  # measured 0.230, still sinking
-
-
-@pytest.mark.parametrize("name", ["desert", "wetland", "ocean"])
-def test_benchmark_scenes_have_the_papers_particle_counts(name):
-    from codesign_mpm.bench import ENV_SCALES, environment_particles
-
-    scene, particles = environment_particles(name, "paper")
-    assert scene.dx == ENV_SCALES["paper"]["dx"]
-    if name == "ocean":  # the water covers the robot instead
-        assert particles.x[~particles.robot, 1].max() > particles.x[particles.robot, 1].max()
-    else:
-        assert particles.n == pytest.approx(144_000, rel=0.02)
