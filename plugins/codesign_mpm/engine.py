@@ -90,6 +90,8 @@ def time_step(scene: Scene, particles: Particles) -> TimeStep:
     (6 eta). A forced `dt` above that bound is refused unless `allow_unstable_dt` is set.
     """
     actuated = (np.abs(particles.muscle).sum(1) > 0) & (particles.muscle_ratio > 0)
+    if scene.muscle_model == "active":
+        _check_muscle_stability(scene, particles, actuated)
     added = np.where(actuated, muscle_modulus(scene.muscle_model, particles.muscle_ratio * particles.youngs_modulus,
                                               scene.max_action), 0.0)
     kinds = set(zip(particles.material.tolist(), particles.youngs_modulus.tolist(), particles.poisson_ratio.tolist(),
@@ -112,6 +114,27 @@ def time_step(scene: Scene, particles: Particles) -> TimeStep:
     return TimeStep(scene.frame_dt / substeps, substeps, stable)
 
 
+def _check_muscle_stability(scene: Scene, particles: Particles, actuated: np.ndarray) -> None:
+    """Refuse active muscles whose compression at -max_action exceeds the shear modulus.
+
+    A compressive stress s a (Ff)(Ff)^T with s |a| >= mu leaves shear along the fibre without
+    stiffness (the material loses ellipticity and buckles at the grid scale: measured, a box
+    robot with s = E and a = -0.5 left the domain within 24 frames).
+    """
+    shear = particles.youngs_modulus / (2 * (1 + particles.poisson_ratio))
+    ratio = scene.max_action * particles.muscle_ratio * particles.youngs_modulus / shear
+    bad = np.flatnonzero(actuated & (ratio >= 1.0))
+    if len(bad):
+        p = bad[0]
+        allowed = 1 / (2 * (1 + particles.poisson_ratio[p]) * particles.muscle_ratio[p])
+        raise SceneError(
+            f"max_action = {scene.max_action!r} is invalid for the active muscles of body "
+            f"{int(particles.body[p])}: at -max_action their compression ({ratio[p]:.3g} x the shear modulus) "
+            f"would make the material unstable; must be < {allowed:.4g} for stiffness_ratio "
+            f"{particles.muscle_ratio[p]:.4g} and Poisson's ratio {particles.poisson_ratio[p]:.4g} "
+            "(or lower muscles.stiffness_ratio)")
+
+
 @dataclass
 class Gradients:
     """d loss / d inputs of a differentiable rollout (numpy)."""
@@ -124,6 +147,19 @@ class Gradients:
     x0: np.ndarray  # (N, 3)
     v0: np.ndarray  # (N, 3)
     F0: np.ndarray  # (N, 3, 3) initial deformation gradient
+    C0: np.ndarray  # (N, 3, 3) initial affine velocity (APIC)
+    Jp0: np.ndarray  # (N,) initial plastic volume ratio (zeros without snow)
+
+
+@dataclass
+class State:
+    """The particle state between two frames: what a rollout may start from and ends in."""
+
+    x: np.ndarray  # (N, 3)
+    v: np.ndarray  # (N, 3)
+    C: np.ndarray  # (N, 3, 3)
+    F: np.ndarray  # (N, 3, 3)
+    Jp: np.ndarray  # (N,) snow's plastic volume ratio (ones elsewhere)
 
 
 @dataclass
@@ -134,6 +170,7 @@ class Rollout:
     com_v: np.ndarray  # (T+1, 3)
     x: np.ndarray  # (N, 3) after T frames
     v: np.ndarray  # (N, 3)
+    final: State  # the whole state after T frames (float64)
 
 
 @dataclass(frozen=True)
@@ -661,6 +698,7 @@ def _model_runs(material: np.ndarray) -> list[tuple[int, int, int]]:
 
 
 _free: "OrderedDict[int, tuple[tuple[int, Layout], _Storage]]" = OrderedDict()  # released storages, oldest first
+_freed: list[_Storage] = []
 
 
 def _acquire(layout: Layout) -> _Storage:
@@ -680,6 +718,9 @@ def _release(generation: int, storage: _Storage) -> None:
     while len(_free) > MAX_FREE_STORAGES:
         _, (_, oldest) = _free.popitem(last=False)
         oldest.free()
+        # Taichi keys a data-oriented object's compiled kernels by the object's id(): keep the
+        # (now empty) object alive so no new storage can take its id and run its stale kernels
+        _freed.append(oldest)
 
 
 def _unit_fibers(fiber: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -699,11 +740,12 @@ class Simulator:
     with a checkpoint every `checkpoint_every` substeps (default: the memory-optimal
     sqrt(total / 2)). Without it, `step` advances the scene frame by frame at full speed.
     Compiled kernels are reused from any earlier simulator of the same layout that has been
-    closed or garbage-collected.
+    closed or garbage-collected; `capacity` (particles) lets simulators of designs with
+    different particle counts share one layout.
     """
 
     def __init__(self, scene: Scene, particles: Particles, *, requires_grad: bool = False,
-                 max_frames: int = 1, checkpoint_every: int | None = None) -> None:
+                 max_frames: int = 1, checkpoint_every: int | None = None, capacity: int | None = None) -> None:
         validate_scene(scene)
         runtime.init_taichi(scene.arch, scene.dtype)
         self.scene = scene
@@ -716,7 +758,7 @@ class Simulator:
         self.segment = checkpoint_every or max(1, math.ceil(math.sqrt(max_frames * self.timestep.substeps / 2)))
         self.body_names = [b.name for b in scene.bodies]
         self.layout = Layout(
-            capacity=-(-particles.n // CAPACITY_STEP) * CAPACITY_STEP,
+            capacity=-(-max(particles.n, capacity or 0) // CAPACITY_STEP) * CAPACITY_STEP,
             n_actuators=particles.n_actuators,
             slots=self.segment + 1 if requires_grad else 2,
             rows=max_frames + 1,
@@ -991,8 +1033,10 @@ class Simulator:
             self.k._load_jp(slot, self.n, state[4])
 
     # ------------------------------------------------------------------ differentiable rollout
-    def rollout(self, actions: np.ndarray, checkpoint_every: int | None = None) -> Rollout:
-        """Run len(actions) frames from the initial state, storing checkpoints for `backward`.
+    def rollout(self, actions: np.ndarray, checkpoint_every: int | None = None, start: State | None = None
+                ) -> Rollout:
+        """Run len(actions) frames from the initial state (or `start`, a mid-episode state, at
+        the current time step), storing checkpoints for `backward`.
 
         `checkpoint_every` (substeps) may be lowered per rollout, down to 1; it cannot exceed
         the simulator's, which sized the storage.
@@ -1012,6 +1056,9 @@ class Simulator:
         self._rollout_segment = S
         self.rollouts += 1  # lets callers (the torch bridge) tell whether backward() is still theirs
         self.reset()
+        if start is not None:
+            self._load(0, tuple(np.ascontiguousarray(a, dtype=self.np_real) for a in
+                                (start.x, start.v, start.C, start.F, start.Jp)))
         act = np.zeros((self.max_frames + 1, max(self.n_actuators, 1)))
         act[:T, :self.n_actuators] = actions
         self.k.act.from_numpy(act.astype(self.np_real))
@@ -1035,25 +1082,25 @@ class Simulator:
             if g0 + L < total:
                 self.k._copy_slot(L, 0, self.n)
                 self._slot = 0
-        x, v, _, _ = self.particles_state(self._slot)
+        x, v, C, F = self.particles_state(self._slot)
+        final = State(*(a.astype(np.float64) for a in (x, v, C, F, self.plastic_volume_ratio(self._slot))))
         self._rollout_changes = self._changes
         self.frame = T
         self._tracked_mass = float(self._probe_density @ self.particles.volume)
         self._com = (self.k.com_x.to_numpy()[:T + 1] / self._tracked_mass,
                      self.k.com_v.to_numpy()[:T + 1] / self._tracked_mass)
-        return Rollout(self._com[0].astype(np.float64), self._com[1].astype(np.float64),
-                       x.astype(np.float64), v.astype(np.float64))
+        return Rollout(self._com[0].astype(np.float64), self._com[1].astype(np.float64), final.x, final.v, final)
 
     @property
     def rollout_is_current(self) -> bool:
         """True while nothing changed the simulator since the last rollout, so backward() may run."""
         return self._changes == self._rollout_changes
 
-    def backward(self, com_x=None, com_v=None, x=None, v=None, F=None) -> Gradients:
+    def backward(self, com_x=None, com_v=None, x=None, v=None, C=None, F=None, Jp=None) -> Gradients:
         """Back-propagate d loss / d outputs of the last `rollout` to its inputs (repeatable).
 
-        `com_x`, `com_v` (T+1, 3) and the final particles' `x`, `v` (N, 3) and `F` (N, 3, 3)
-        are the loss's gradients with respect to those outputs (None: zero). Each segment is
+        `com_x`, `com_v` (T+1, 3) and the final particles' `x`, `v` (N, 3), `C`, `F` (N, 3, 3)
+        and `Jp` (N,) are the loss's gradients with respect to those outputs (None: zero). Each segment is
         recomputed from its checkpoint, then differentiated substep by substep in reverse; the
         gradient of a segment's first state carries into the previous one.
         """
@@ -1077,9 +1124,10 @@ class Simulator:
                 full[:T + 1] = g / M
                 dL_dM -= float((g * com).sum()) / M
             field.grad.from_numpy(full)
-        carry = (np.ascontiguousarray(np.zeros((n, 3)) if x is None else x, dtype=r),
-                 np.ascontiguousarray(np.zeros((n, 3)) if v is None else v, dtype=r), np.zeros((n, 3, 3), r),
-                 np.ascontiguousarray(np.zeros((n, 3, 3)) if F is None else F, dtype=r), np.zeros(n, r))
+        def seed(g, shape):
+            return np.ascontiguousarray(np.zeros(shape) if g is None else np.reshape(g, shape), dtype=r)
+
+        carry = (seed(x, (n, 3)), seed(v, (n, 3)), seed(C, (n, 3, 3)), seed(F, (n, 3, 3)), seed(Jp, (n,)))
         total = T * spf
         starts = list(range(0, total, S))
         for k in reversed(range(len(starts))):
@@ -1115,7 +1163,8 @@ class Simulator:
             muscle=self.k.muscle.grad.to_numpy()[:n, :K].astype(np.float64),
             # the engine used f / |f|: project out the radial part and divide by |f|
             fiber=(fiber - (fiber * unit).sum(1, keepdims=True) * unit) / self._fiber_length[:, None],
-            x0=carry[0].astype(np.float64), v0=carry[1].astype(np.float64), F0=carry[3].astype(np.float64))
+            x0=carry[0].astype(np.float64), v0=carry[1].astype(np.float64), C0=carry[2].astype(np.float64),
+            F0=carry[3].astype(np.float64), Jp0=carry[4].astype(np.float64))
         for name, value in vars(grads).items():
             if not np.isfinite(value).all():
                 raise SimulationError(f"the backward pass produced non-finite gradients for {name}")

@@ -60,7 +60,7 @@ def test_spaces_observation_and_episode_end(env):
 def test_robot_rests_without_action_and_moves_with_a_gait(env):
     steps = range(env.horizon)
     still, _ = rollout(env, [np.zeros(4) for _ in steps])
-    gait, _ = rollout(env, [0.5 * np.sin(0.6 * t + np.arange(4) * np.pi / 2) for t in steps])
+    gait, _ = rollout(env, [0.3 * np.sin(0.6 * t + np.arange(4) * np.pi / 2) for t in steps])
     assert np.abs(still[[0, 2]]).max() < 1e-4
     assert abs(gait[0]) > 20 * max(abs(still[0]), 1e-5)
 

@@ -35,6 +35,11 @@ def test_the_cover_is_laid_around_the_robot_without_overlap(name):
     robot_cells = {tuple(c) for c in np.floor(robot.x / DX).astype(int)}
     cover_cells = {tuple(c) for c in np.floor(cover.x / DX).astype(int)}
     assert not robot_cells & cover_cells
+    # the robot stands on the terrain (rest_on: terrain), not on cover particles
+    footprint = {(i, k) for i, _, k in robot_cells}
+    bottom = robot.x[:, 1].min()
+    beneath = [p for p, c in zip(cover.x, np.floor(cover.x / DX).astype(int)) if (c[0], c[2]) in footprint]
+    assert all(p[1] > bottom for p in beneath)
     thickness = PRESET_CONFIGS[name]().cover.thickness
     assert cover.x[:, 1].min() > 0.1 and cover.x[:, 1].max() < 0.1 + thickness
     if name == "ocean":  # water covers the robot

@@ -143,3 +143,16 @@ def test_time_step_counts_only_what_the_muscle_model_adds():
     body = LA + 2 * MU
     assert speed(muscle_model="energy") == pytest.approx(math.sqrt((body + 8 * RATIO * E) / 1e3))
     assert speed(muscle_model="active", max_action=0.3) == pytest.approx(math.sqrt((body + 0.6 * RATIO * E) / 1e3))
+
+
+def test_compressive_actuation_beyond_the_shear_modulus_is_refused():
+    """At -max_action the active stress compresses the fibre by s max_action; at or above the shear
+    modulus mu = E / (2 (1 + nu)) the material loses stability, so the scene is refused."""
+    from codesign_mpm import SceneError
+
+    scene = Scene(size=[0.5, 0.5, 0.5], dx=1 / 32, terrain=TerrainSpec(kind="none"), max_action=1.0,
+                  bodies=[BodySpec(shape=ShapeSpec(size=[0.1, 0.1, 0.1]), center=[0.25, 0.25, 0.25],
+                                   material=MaterialSpec(youngs_modulus=E, poisson_ratio=NU),
+                                   muscles=MuscleSpec(groups=[1, 1, 1], stiffness_ratio=RATIO))])
+    with pytest.raises(SceneError, match=r"max_action = 1.0 is invalid .* must be < 0.595"):
+        Simulator(scene, build_particles(scene))
