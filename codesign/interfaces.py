@@ -31,6 +31,18 @@ class DesignSpace:
     """K, the largest number of muscles the robot may have."""
     default_stiffness: float
     """Young's modulus of the robot material when a design does not say otherwise."""
+    bounds: np.ndarray | None = None
+    """(2, 3) lower and upper corner of the workspace's box; None: the points' bounding box."""
+    muscle: np.ndarray | None = None
+    """(N, K) the environment's own muscle membership (a box's grid, an animal's groups); None: not given."""
+    fiber: np.ndarray | None = None
+    """(N, 3) the environment's own unit fibre directions; None: the heading +x."""
+
+    def box(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) corners of the workspace: `bounds`, or else the points' bounding box."""
+        if self.bounds is not None:
+            return np.asarray(self.bounds[0], dtype=float), np.asarray(self.bounds[1], dtype=float)
+        return self.points.min(0).astype(float), self.points.max(0).astype(float)
 
 
 @dataclass
@@ -103,6 +115,9 @@ class Representation(ABC):
 
 class Controller(ABC):
     """(observation, control step index) -> action in ``[-bound, bound]^K``."""
+
+    open_loop: ClassVar[bool] = False
+    """True if the action never depends on the observation (lets episodes precompute all actions)."""
 
     @abstractmethod
     def setup(

@@ -2,23 +2,14 @@
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import torch
 
 from codesign.errors import RecipeError
 from codesign.geometry import grid_partition
 from codesign.interfaces import DesignFields, DesignSpace, Representation
+from codesign_designs.common import check_stiffness_ratios, environment_muscle, near_cubic_grid
 from codesign_designs.config import ParticleConfig
-
-
-def near_cubic_grid(k: int) -> tuple[int, int, int]:
-    """Factor ``k`` into (gx, gy, gz), as balanced as possible, largest along x: 4 -> (2, 2, 1)."""
-    triples = [(a, b, k // (a * b)) for a, b in itertools.product(range(1, k + 1), repeat=2)
-               if k % (a * b) == 0]
-    triples = [t for t in triples if t[0] >= t[1] >= t[2]]
-    return min(triples, key=lambda t: (t[0] / t[2], t[0]))
 
 
 class ParticleRepresentation(Representation):
@@ -29,10 +20,7 @@ class ParticleRepresentation(Representation):
     """
 
     def __init__(self, config: ParticleConfig) -> None:
-        if not config.min_stiffness_ratio < config.max_stiffness_ratio:
-            raise RecipeError(
-                f"invalid recipe: representation.min_stiffness_ratio: {config.min_stiffness_ratio!r} must be "
-                f"below max_stiffness_ratio ({config.max_stiffness_ratio!r})")
+        check_stiffness_ratios(config)
         if len(config.fiber) != 3 or not np.linalg.norm(config.fiber) > 0:
             raise RecipeError(f"invalid recipe: representation.fiber: {config.fiber!r} is not a non-zero 3-vector")
         self.config = config
@@ -46,6 +34,8 @@ class ParticleRepresentation(Representation):
         if cfg.muscle_init == "grid":
             muscle = np.zeros((n, k))
             muscle[np.arange(n), grid_partition(space.points, near_cubic_grid(k))] = cfg.muscle_sharpness
+        elif cfg.muscle_init == "environment":
+            muscle = cfg.muscle_sharpness * environment_muscle(space)
         else:
             muscle = rng.normal(0.0, 1.0, (n, k))
         dtype = torch.get_default_dtype()

@@ -9,8 +9,11 @@ its own config class (`PRESET_CONFIGS`) whose defaults are the preset's values, 
 
 import copy
 from dataclasses import dataclass, field, make_dataclass
-from typing import Optional
+from typing import Any, Optional
 
+from codesign.bodies import BODY_FILE_SUFFIXES, LIBRARY_BODIES
+
+ROBOT_BODIES = ("box", "ellipsoid", *LIBRARY_BODIES, "file")
 COVER_KINDS = ("none", "sand", "snow", "clay", "mud", "water")
 
 
@@ -78,9 +81,18 @@ PRESETS: dict[str, EnvironmentPreset] = {
 
 @dataclass
 class RobotConfig:
+    body: str = field(default="box", metadata={
+        "choices": list(ROBOT_BODIES),
+        "help": "the base workspace a design shapes: a box or ellipsoid filling `size`, a library body (the "
+                "animals seal, caterpillar, fish, panda; the fish_* primitives) or `file` (body_file), scaled "
+                "uniformly to fit in `size`"})
+    body_file: Optional[str] = field(default=None, metadata={
+        "help": f"body: file: an annotated .npz (codesign annotate), a watertight mesh, a point cloud or voxels "
+                f"({', '.join(BODY_FILE_SUFFIXES)}); heading +x, up +y; relative to the working directory"})
     size: list[float] = field(
         default_factory=lambda: [0.2, 0.08, 0.08],
-        metadata={"gt": 0, "min_len": 3, "help": "extents (x, y, z) of the box workspace the design shapes"},
+        metadata={"gt": 0, "min_len": 3, "help": "extents (x, y, z) of the box workspace the design shapes "
+                                                "(other bodies: the box they fit in)"},
     )
     position: list[float] = field(
         default_factory=lambda: [0.25, 0.25],
@@ -91,7 +103,8 @@ class RobotConfig:
     density: float = field(default=1.0e3, metadata={"gt": 0})
     muscle_groups: list[int] = field(
         default_factory=lambda: [2, 2, 1],
-        metadata={"ge": 1, "min_len": 3, "help": "grid of muscle blocks along x, y, z; K = their product"},
+        metadata={"ge": 1, "min_len": 3, "help": "grid of muscle blocks along x, y, z; K = their product (box, "
+                                                "ellipsoid, unannotated files; other bodies bring their own muscles)"},
     )
     particles_per_cell: int = field(default=8, metadata={"choices": [1, 8, 27, 64]})
     rest_on: str = field(default="terrain", metadata={
@@ -113,13 +126,40 @@ class TerrainConfig:
     )
 
 
+def _vector(default: list[float], help: str) -> Any:
+    return field(default_factory=lambda: list(default), metadata={"min_len": 3, "help": help})
+
+
 @dataclass
 class TaskConfig:
-    name: str = field(default="movement_speed", metadata={"choices": ["movement_speed", "turning"]})
-    direction: list[float] = field(
-        default_factory=lambda: [1.0, 0.0, 0.0],
-        metadata={"min_len": 3, "help": "movement_speed: target heading (normalised); also observed"},
-    )
+    """The task; each parameter matters to the tasks named in its help (codesign_mpm.tasks)."""
+
+    name: str = field(default="movement_speed", metadata={
+        "help": "movement_speed | turning | velocity_tracking | waypoint_following, or a registered task"})
+    direction: list[float] = _vector([1.0, 0.0, 0.0], "movement_speed: target heading (normalised)")
+    up: list[float] = _vector([0.0, 1.0, 0.0], "turning: counter-clockwise about this axis")
+    offset: list[float] = _vector([0.3, 0.0, 0.0], "path tasks: end point minus the start centre of mass")
+    start_velocity: list[float] = _vector([0.0, 0.0, 0.0], "path tasks: velocity at the start of the path")
+    end_velocity: list[float] = _vector([0.0, 0.0, 0.0], "path tasks: velocity at the end")
+    start_acceleration: list[float] = _vector([0.0, 0.0, 0.0], "path tasks: acceleration at the start")
+    end_acceleration: list[float] = _vector([0.0, 0.0, 0.0], "path tasks: acceleration at the end")
+    params: dict[str, Any] = field(default_factory=dict, metadata={"help": "parameters of a third-party task"})
+
+
+@dataclass
+class ObservationConfig:
+    """Parts of the observation, in this order when switched on (codesign_mpm.observations)."""
+
+    com: bool = field(default=True, metadata={"help": "robot centre of mass (3)"})
+    velocity: bool = field(default=True, metadata={"help": "robot centre-of-mass velocity (3)"})
+    muscle_centroids: bool = field(default=False, metadata={
+        "help": "position and velocity of each muscle's membership-weighted centroid (6 K)"})
+    occupancy: bool = field(default=False, metadata={
+        "help": "semantic occupancy around the robot from the MPM grid: terrain, cover, robot (3 x cells)"})
+    occupancy_cells: list[int] = field(default_factory=lambda: [8, 4, 8], metadata={
+        "ge": 1, "min_len": 3, "help": "occupancy map size in grid cells (x, y, z), centred on the robot"})
+    task: bool = field(default=True, metadata={"help": "task information (3): direction, next waypoint, ..."})
+    time: bool = field(default=False, metadata={"help": "control step / horizon (1)"})
 
 
 @dataclass
@@ -135,6 +175,7 @@ class LocomotionConfig:
     robot: RobotConfig = field(default_factory=RobotConfig)
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
     cover: Optional[CoverConfig] = field(
         default=None, metadata={"help": "ground cover layer; null = the environment's own"})
 

@@ -1,4 +1,5 @@
-"""Locomotion environments (SoftZoo's biomes): a box-shaped robot workspace on terrain.
+"""Locomotion environments (SoftZoo's biomes): a robot workspace (box, ellipsoid, animal or body
+file) on terrain.
 
 Construction follows the paper: terrain, then the robot placed on it, then the ground cover
 (sand, snow, clay, mud, water) laid on the terrain as a layer, leaving out the grid cells the
@@ -10,20 +11,29 @@ observations and rewards.
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from codesign.bodies import BODY_FILE_SUFFIXES, BodyError, load_body
+import torch
+
 from codesign.errors import RecipeError
-from codesign.interfaces import DesignFields, DesignSpace, Environment, StepResult
-from codesign_mpm.config import CoverConfig, EnvironmentPreset, LocomotionConfig
+from codesign.interfaces import Controller, DesignFields, DesignSpace, Environment, StepResult
+from codesign.registry import suggest
+from codesign_mpm.config import CoverConfig, EnvironmentPreset, LocomotionConfig, RobotConfig, TaskConfig
 from codesign_mpm.engine import Simulator
+from codesign_mpm.observations import Observer
 from codesign_mpm.sampling import Particles, build_particles
 from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
+from codesign_mpm.tasks import TASKS, RobotFrame, Task, TaskContext
+from codesign_mpm.terrain import height_map
+
+if TYPE_CHECKING:
+    from codesign_mpm.episode import Episode
 
 OCCUPANCY_THRESHOLD = 0.5
 """Particles whose occupancy is below this are removed: near-massless particles destabilise MPM."""
-UP = np.array([0.0, 1.0, 0.0])
 
 
 def _problem(key: str, message: str) -> RecipeError:
@@ -35,15 +45,25 @@ def _check_config(config: LocomotionConfig) -> None:
     for key, value, n in (("size", config.size, 3), ("robot.size", config.robot.size, 3),
                           ("robot.position", config.robot.position, 2),
                           ("robot.muscle_groups", config.robot.muscle_groups, 3),
-                          ("task.direction", config.task.direction, 3)):
+                          ("task.direction", config.task.direction, 3), ("task.up", config.task.up, 3),
+                          ("task.offset", config.task.offset, 3)):
         if len(value) != n:
             raise _problem(key, f"expected {n} numbers, got {list(value)}")
     wall = Scene().boundary_cells * config.dx
     if config.terrain.height < wall:
         raise _problem("terrain.height", f"{config.terrain.height!r} is below the wall band; "
                        f"must be >= 3 dx = {wall:.4g}")
-    if not np.linalg.norm(config.task.direction) > 0:
-        raise _problem("task.direction", "must be a non-zero vector")
+    for key in ("direction", "up"):
+        if not np.linalg.norm(getattr(config.task, key)) > 0:
+            raise _problem(f"task.{key}", "must be a non-zero vector")
+
+
+def make_task(config: TaskConfig) -> Task:
+    if config.name not in TASKS:
+        raise _problem("task.name", f"{config.name!r} is not a task; {suggest(config.name, TASKS)}"
+                                    f"allowed: {', '.join(sorted(TASKS))} (or a task registered with "
+                                    "codesign_mpm.tasks.register_task)")
+    return TASKS[config.name](config)
 
 
 def cover_body(cover: CoverConfig) -> BodySpec:
@@ -54,9 +74,32 @@ def cover_body(cover: CoverConfig) -> BodySpec:
                     material=material, particles_per_cell=cover.particles_per_cell)
 
 
+def robot_shape(robot: RobotConfig) -> tuple[ShapeSpec, MuscleSpec]:
+    """The robot's base shape and muscles: a grid of muscles in a box or ellipsoid, a library body's
+    own muscles, or a body file's (its annotated groups, else the grid)."""
+    if robot.body_file is not None and robot.body != "file":
+        raise _problem("robot.body_file", f"{robot.body_file!r} is set but robot.body is {robot.body!r}; "
+                                          "set robot.body: file (or body_file: null)")
+    grid = MuscleSpec(groups=list(robot.muscle_groups), fiber=[1.0, 0.0, 0.0])
+    if robot.body in ("box", "ellipsoid"):
+        return ShapeSpec(kind=robot.body, size=list(robot.size)), grid
+    if robot.body != "file":
+        return ShapeSpec(kind="body", body=robot.body, size=list(robot.size)), replace(grid, layout="body")
+    if not robot.body_file:
+        raise _problem("robot.body_file", f"{robot.body_file!r}: robot.body: file needs the path of a body file "
+                                          f"({', '.join(BODY_FILE_SUFFIXES)})")
+    try:
+        body = load_body(robot.body_file)
+    except BodyError as exc:
+        raise _problem("robot.body_file", str(exc)) from exc
+    shape = ShapeSpec(kind="body", file=robot.body_file, size=list(robot.size))
+    return shape, replace(grid, layout="body") if body.n_groups else grid
+
+
 def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
-    """The scene of a locomotion config: an actuated box robot on the terrain, then the cover."""
+    """The scene of a locomotion config: the actuated robot resting on the terrain, then the cover."""
     t, r = config.terrain, config.robot
+    shape, muscles = robot_shape(r)
     cover = preset.cover if config.cover is None else config.cover
     on_cover = r.rest_on == "cover" and cover.kind != "none"
     scene = Scene(
@@ -66,14 +109,14 @@ def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
                             seed=t.seed, friction=preset.friction if t.friction is None else t.friction),
         bodies=[BodySpec(
             name="robot",
-            shape=ShapeSpec(kind="box", size=list(r.size)),
+            shape=shape,
             material=MaterialSpec(youngs_modulus=r.youngs_modulus, poisson_ratio=r.poisson_ratio,
                                   density=r.density),
             center=[r.position[0], t.height, r.position[1]],
             rest_on_terrain=True,
             rest_offset=cover.thickness if on_cover else 0.0,
             particles_per_cell=r.particles_per_cell,
-            muscles=MuscleSpec(groups=list(r.muscle_groups), fiber=[1.0, 0.0, 0.0]),
+            muscles=muscles,
             robot=True,
         )],
         frame_dt=config.frame_dt,
@@ -106,12 +149,12 @@ def _numpy(value: Any) -> np.ndarray:
 
 
 class LocomotionEnv(Environment):
-    """Move fast along a direction, or turn counter-clockwise, on an environment preset.
+    """A robot and a task (codesign_mpm.tasks) on an environment preset.
 
-    Observation (9): robot centre of mass (3), its velocity (3), the unit task direction (3).
-    Reward per step (SoftZoo appendix), mass-weighted over robot particles:
-    ``movement_speed`` = mean velocity . direction; ``turning`` = mean velocity along each
-    particle's counter-clockwise tangent about the up axis through the centre of mass.
+    The observation is made of the parts switched on in `config.observation`
+    (codesign_mpm.observations; by default 9: centre of mass, its velocity, task information).
+    The reward of each control step is the task's. `differentiable_episode` runs a whole
+    episode of a design and a controller as a torch loss (minus the summed reward).
 
     `base_particles` is the robot's whole workspace; each design keeps, weighs and stiffens a
     subset. `cover_particles` (the ground cover, possibly none) follow the robot's in the
@@ -129,17 +172,26 @@ class LocomotionEnv(Environment):
         self.base_particles: Particles = _subset(everything, everything.robot)
         self.cover_particles: Particles = _subset(everything, ~everything.robot)
         k = self.base_particles.n_actuators
-        self.design_space = DesignSpace(points=self.base_particles.x.copy(), n_actuators=k,
-                                        default_stiffness=config.robot.youngs_modulus)
+        half = config.dx / round(config.robot.particles_per_cell ** (1 / 3)) / 2  # lattice cells around particles
+        base = self.base_particles
+        self.design_space = DesignSpace(points=base.x.copy(), n_actuators=k, default_stiffness=config.robot.youngs_modulus,
+                                        bounds=np.stack([base.x.min(0) - half, base.x.max(0) + half]),
+                                        muscle=base.muscle.copy(), fiber=base.fiber.copy())
         self.action_dim = k
-        self.observation_dim = 9
         self.horizon = config.horizon
         self.control_dt = config.frame_dt
-        self.direction = np.asarray(config.task.direction, dtype=np.float64)
-        self.direction /= np.linalg.norm(self.direction)
+        self.task = make_task(config.task)
+        self.observer = Observer(config.observation, self.task, k, config.horizon, config.dx, height_map(self.scene))
+        self.observation_dim = self.observer.dim
         self.particles: Particles = _concat(self.base_particles, self.cover_particles)
         self.sim: Simulator | None = None
+        self._grad_sim: Simulator | None = None
         self.t = 0
+
+    @property
+    def observation_space(self):
+        """The observation as a `gymnasium.spaces.Box`."""
+        return self.observer.space()
 
     def design_particles(self, design: DesignFields) -> Particles:
         """Base particles with a design applied; particles under the occupancy threshold are dropped."""
@@ -158,47 +210,75 @@ class LocomotionEnv(Environment):
         return _concat(robot, self.cover_particles)
 
     def reset(self, design: DesignFields | None = None, seed: int | None = None) -> np.ndarray:
-        """Load ``design`` (or keep the last one); the task is deterministic, so ``seed`` is unused."""
+        """Load ``design`` (or keep the last one); the tasks are deterministic, so ``seed`` is unused."""
         if design is not None:
             self.particles = self.design_particles(design)
         particles = self.particles
         # A new particle count needs a new simulator (cheap: compiled kernels of the same
         # layout are reused from the closed one); reset() re-derives the CFL step itself.
         if self.sim is None or self.sim.n != particles.n:
-            self.close()
-            self.sim = Simulator(self.scene, particles)
+            if self.sim is not None:
+                self.sim.close()
+            self.sim = Simulator(self.scene, particles, capacity=self.capacity)
         else:
             self.sim.reset(particles)
         self.t = 0
+        self._start_task(particles)
+        return self._observe()[0]
+
+    @property
+    def capacity(self) -> int:
+        """Particles of the full workspace plus the cover: every design's simulators share one layout."""
+        return self.base_particles.n + self.cover_particles.n
+
+    def _start_task(self, particles: Particles) -> None:
         robot = particles.robot
         self._n_robot = int(robot.sum())
-        self._mass = particles.volume[robot] * particles.density[robot]
-        return self._observe()[0]
+        self._mass = torch.as_tensor(particles.volume[robot] * particles.density[robot])
+        self._muscle = torch.as_tensor(particles.muscle[robot])
+        rest = particles.x[robot]
+        com = (self._mass.numpy() @ rest) / self._mass.sum().item()
+        self.task.start(TaskContext(rest_x=rest, start_com=com, control_dt=self.control_dt, horizon=self.horizon))
 
     def step(self, action: np.ndarray) -> StepResult:
         if self.sim is None:
             raise RuntimeError("call reset() before step()")
         self.sim.step(_numpy(action))
         self.t += 1
-        observation, x, v = self._observe()
-        com = observation[:3]
-        if self.config.task.name == "movement_speed":
-            reward = float(observation[3:6] @ self.direction)
-        else:
-            tangent = np.cross(UP, x - com)
-            length = np.linalg.norm(tangent, axis=1, keepdims=True)
-            tangent = np.divide(tangent, length, out=np.zeros_like(tangent), where=length > 1e-12)
-            reward = float(self._mass @ (v * tangent).sum(1) / self._mass.sum())
-        return StepResult(observation, reward, self.t >= self.horizon, {"com": com.copy()})
+        observation, frame = self._observe()
+        reward = float(self.task.reward(frame))
+        return StepResult(observation, reward, self.t >= self.horizon, {"com": frame.com_x.numpy().copy()})
 
-    def _observe(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(observation, robot positions, robot velocities); the robot's particles come first."""
-        x, v, _, _ = self.sim.particles_state()
-        x, v = x[:self._n_robot].astype(np.float64), v[:self._n_robot].astype(np.float64)
-        weights = self._mass / self._mass.sum()
-        return np.concatenate([weights @ x, weights @ v, self.direction]), x, v
+    def _observe(self) -> tuple[np.ndarray, RobotFrame]:
+        """(observation before the next step, the robot's frame after the last); robot particles come first."""
+        x, v, _, F = (torch.as_tensor(a[:self._n_robot], dtype=torch.float64) for a in self.sim.particles_state())
+        cover_x = self.sim.particles_state()[0][self._n_robot:] if self.config.observation.occupancy else None
+        observation = self.observer(self.t, x, v, self._mass, self._muscle, cover_x)
+        w = self._mass / self._mass.sum()
+        frame = RobotFrame(self.t, self.t * self.control_dt, w @ x, w @ v, self._mass, x, v, F)
+        return observation.numpy().astype(np.float64), frame
+
+    def differentiable_episode(self, design: DesignFields, controller: Controller,
+                               checkpoint_every: int | None = None) -> Episode:
+        """Run an episode of `design` and `controller` as a torch loss (minus the summed reward)
+        whose `backward()` reaches the torch parameters behind both (codesign_mpm.episode)."""
+        from codesign_mpm.episode import run_episode
+
+        return run_episode(self, design, controller, checkpoint_every)
+
+    def grad_simulator(self, particles: Particles) -> Simulator:
+        """A differentiable simulator for `particles` (one per particle count, sharing one layout)."""
+        if self._grad_sim is None or self._grad_sim.n != particles.n:
+            if self._grad_sim is not None:
+                self._grad_sim.close()
+            self._grad_sim = Simulator(self.scene, particles, requires_grad=True, max_frames=self.horizon,
+                                       capacity=self.capacity)
+        else:
+            self._grad_sim.reset(particles)
+        return self._grad_sim
 
     def close(self) -> None:
-        if self.sim is not None:
-            self.sim.close()
-            self.sim = None
+        for sim in (self.sim, self._grad_sim):
+            if sim is not None:
+                sim.close()
+        self.sim = self._grad_sim = None

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from codesign.bodies import Body, BodyError, Labels, library_body, load_body
 from codesign.geometry import grid_partition
 from codesign_mpm.materials import MATERIALS, pack_params
 from codesign_mpm.scene import BodySpec, Scene, SceneError, ShapeSpec
@@ -64,8 +65,23 @@ def _load_points(path: Path) -> np.ndarray:
     return np.asarray(trimesh.load(path).vertices, dtype=np.float64)
 
 
+def _fitted_body(key: str, shape: ShapeSpec) -> Body:
+    """The solid of a `body` shape, scaled uniformly to fit in `size` and centred on the origin."""
+    source, value = ("body", shape.body) if shape.body else ("file", shape.file)
+    try:
+        body = library_body(shape.body) if shape.body else load_body(shape.file)
+    except BodyError as exc:
+        raise SceneError(f"{key}.shape.{source} = {value!r} is invalid: {exc}") from exc
+    return body.fitted(shape.size)
+
+
 def _shape_points(key: str, shape: ShapeSpec, spacing: float) -> tuple[np.ndarray, float]:
     """Particle offsets from the body centre and the shape's total volume."""
+    if shape.kind == "body":
+        body = _fitted_body(key, shape)
+        p = lattice(*body.bounds, spacing)
+        p = p[body.contains(p)]
+        return p, len(p) * spacing ** 3
     if shape.kind in ("box", "ellipsoid"):
         size = np.asarray(shape.size, dtype=float)
         p = lattice(-size / 2, size / 2, spacing)
@@ -154,6 +170,8 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
     key = f"bodies[{i}]"
     per_axis = round(body.particles_per_cell ** (1 / 3))
     spacing = scene.dx / per_axis
+    if body.shape.kind == "body":
+        _check_resolved(scene, key, body.shape)
     offsets, total_volume = _shape_points(key, body.shape, spacing)
     if len(offsets) == 0:
         raise SceneError(f"{key}.shape = {body.shape!r} is invalid: it holds no particle at "
@@ -170,7 +188,7 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
         # with no free grid cell beneath for a ground cover to fill
         center[1] = ground + body.rest_offset + spacing / 2 - offsets[:, 1].min()
     x = offsets + center
-    margin = scene.dx * scene.boundary_cells
+    margin = scene.wall
     lo_ok = (x >= margin).all()
     hi_ok = (x <= np.asarray(scene.size) - margin).all()
     if not (lo_ok and hi_ok):
@@ -178,7 +196,18 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
                          f"{x.min(0).round(4).tolist()} to {x.max(0).round(4).tolist()}, outside the "
                          f"domain interior [{margin:.4g}, size - {margin:.4g}] for size {list(scene.size)}")
     n = len(x)
-    if body.muscles is not None:
+    labels = _body_labels(scene, key, body.shape, local) if body.shape.kind == "body" else None
+    if body.muscles is not None and body.muscles.layout == "body":
+        k = _fitted_body(key, body.shape).n_groups
+        if k == 0:
+            raise SceneError(f"{key}.muscles.layout = 'body' is invalid: the body ({_body_source(key, body.shape)}) "
+                             "has no muscle groups; annotate it (codesign annotate) or use layout grid")
+        muscle = np.zeros((n, k))
+        active = labels.groups >= 0
+        muscle[np.flatnonzero(active), labels.groups[active]] = 1.0
+        fiber = labels.fibers @ rotation_matrix(body.rotation).T
+        ratio = body.muscles.stiffness_ratio
+    elif body.muscles is not None:
         groups = list(body.muscles.groups)
         muscle = np.eye(int(np.prod(groups)))[grid_partition(local, groups)]
         fiber = rotation_matrix(body.rotation) @ np.asarray(body.muscles.fiber, dtype=float)
@@ -186,7 +215,36 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
         ratio = body.muscles.stiffness_ratio
     else:
         muscle, fiber, ratio = np.zeros((n, 0)), np.tile([1.0, 0, 0], (n, 1)), 0.0
-    return _fields(i, body, x, total_volume / n, muscle, fiber, ratio)
+    fields = _fields(i, body, x, total_volume / n, muscle, fiber, ratio)
+    if labels is not None:
+        fields["youngs_modulus"] = fields["youngs_modulus"] * labels.stiffness
+    return fields
+
+
+def _body_source(key: str, shape: ShapeSpec) -> str:
+    return f"{key}.shape.body = {shape.body!r}" if shape.body else f"{key}.shape.file = {shape.file!r}"
+
+
+def _check_resolved(scene: Scene, key: str, shape: ShapeSpec) -> None:
+    """A body thinner than a grid cell along some axis cannot be simulated meaningfully: say so."""
+    lo, hi = _fitted_body(key, shape).bounds
+    for axis, extent in zip("xyz", hi - lo):
+        if extent < scene.dx:
+            raise SceneError(f"{_body_source(key, shape)} is invalid: fitted to size {list(shape.size)} the body is "
+                             f"{extent:.3g} thick along {axis}, under one grid cell (dx = {scene.dx:.4g}); make it "
+                             "larger or the grid finer")
+
+
+def _body_labels(scene: Scene, key: str, shape: ShapeSpec, local: np.ndarray) -> Labels:
+    """The body's labels at its particles; every muscle group must keep at least one particle."""
+    body = _fitted_body(key, shape)
+    labels = body.labels(local)
+    empty = np.flatnonzero(np.bincount(labels.groups[labels.groups >= 0], minlength=body.n_groups) == 0)
+    if len(empty):
+        raise SceneError(f"{_body_source(key, shape)} is invalid: its muscle group {empty[0]} "
+                         f"({body.group_names[empty[0]]}) holds no particle at dx = {scene.dx:.4g} and size "
+                         f"{list(shape.size)}; make the body larger or the grid finer")
+    return labels
 
 
 def _fields(i: int, body: BodySpec, x: np.ndarray, volume: float, muscle: np.ndarray, fiber: np.ndarray,
@@ -221,7 +279,7 @@ def _layer_particles(scene: Scene, i: int, body: BodySpec, occupied: np.ndarray)
     (boundary_cells - 1) dx from the edge, is where material comes to rest against them.
     """
     spacing = scene.dx / round(body.particles_per_cell ** (1 / 3))
-    margin = scene.dx * (scene.boundary_cells - 1)
+    margin = scene.wall
     heights = np.maximum(height_map(scene), margin)
     size = np.asarray(scene.size, dtype=float)
     top = heights.max() + body.shape.thickness

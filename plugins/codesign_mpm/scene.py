@@ -10,9 +10,11 @@ import math
 from dataclasses import dataclass, field
 from typing import List, Optional
 
+from codesign.bodies import LIBRARY_BODIES
 from codesign_mpm.materials import MATERIALS, MUSCLE_MODELS, material_names
 
-SHAPE_KINDS = ("box", "sphere", "ellipsoid", "capsule", "mesh", "points", "voxels", "layer")
+SHAPE_KINDS = ("box", "sphere", "ellipsoid", "capsule", "mesh", "points", "voxels", "body", "layer")
+MUSCLE_LAYOUTS = ("grid", "body")
 TERRAIN_KINDS = ("none", "flat", "incline", "perlin")
 DTYPES = ("float32", "float64")
 ARCHS = ("cpu", "cuda", "gpu", "vulkan", "metal")
@@ -28,13 +30,14 @@ class ShapeSpec:
     """Where material is. Which fields matter depends on `kind`."""
 
     kind: str = "box"
-    size: List[float] = field(default_factory=lambda: [0.1, 0.1, 0.1])  # box extents, ellipsoid diameters
+    size: List[float] = field(default_factory=lambda: [0.1, 0.1, 0.1])  # box, ellipsoid diameters; body: box to fit in
     radius: float = 0.05  # sphere, capsule
     length: float = 0.1  # capsule: length of the axis segment (along x)
     file: Optional[str] = None  # mesh (anything trimesh loads), points (.npy/.ply/.xyz), voxels (.npy bool)
     scale: float = 1.0  # mesh / points: the file's longest extent becomes `scale` scene units
     voxel_size: float = 0.01  # voxels: edge of one voxel in scene units
     thickness: float = 0.05  # layer: depth of material laid on the terrain (the body's centre is unused)
+    body: Optional[str] = None  # body: a library body (codesign.bodies.LIBRARY_BODIES), or null and a body `file`
 
 
 @dataclass
@@ -62,7 +65,8 @@ class MaterialSpec:
 
 @dataclass
 class MuscleSpec:
-    """Muscle groups laid out as a grid over the body's bounding box, all fibres along `fiber`.
+    """Muscle groups laid out as a grid over the body's bounding box, all fibres along `fiber`,
+    or (`layout: body`, for `body` shapes) the body's own labelled groups and fibres.
 
     `groups: [2, 2, 1]` gives four actuators (front/back x bottom/top). Particle p's actuation
     is a = u . r_p and its muscle stiffness s = stiffness_ratio * E_p; how they make a stress
@@ -72,6 +76,7 @@ class MuscleSpec:
     groups: List[int] = field(default_factory=lambda: [2, 2, 1])
     fiber: List[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])
     stiffness_ratio: float = 1.0
+    layout: str = "grid"  # grid: `groups` and `fiber` as above; body: the body's muscle groups and fibres
 
 
 @dataclass
@@ -122,7 +127,16 @@ class Scene:
     grid_region: str = "bbox"  # bbox: clear and update only the nodes particles touch; full: the whole grid
     boundary_cells: int = 3  # walls: nodes this close to the domain edge block outward motion
     muscle_model: str = "active"  # active: tau += s a (Ff)(Ff)^T; energy: s (|Ff|^2 - 1 + a)^2 (materials.MUSCLE_MODELS)
-    max_action: float = 1.0  # largest |action| the time step is sized for; larger actions are refused
+    max_action: float = 0.3  # largest |action| (the paper's bound): sizes the time step, bounds compression; larger actions are refused
+
+    @property
+    def wall(self) -> float:
+        """Where material may start: the last wall node, (boundary_cells - 1) dx from each edge.
+
+        Nodes closer to an edge than boundary_cells cannot move outwards, so material comes to
+        rest against this plane; a body placed with its face on it is flush with the wall.
+        """
+        return self.dx * (self.boundary_cells - 1)
 
     @property
     def grid_shape(self) -> tuple[int, int, int]:
@@ -197,6 +211,16 @@ def _validate_body(key: str, body: BodySpec) -> None:
         _fail(f"{key}.muscles", body.muscles, "a layer cannot have muscles (null)")
     if shape.kind in ("mesh", "points", "voxels") and not shape.file:
         _fail(f"{key}.shape.file", shape.file, f"a {shape.kind} shape needs a file path")
+    if shape.kind == "body":
+        _check_vec(f"{key}.shape.size", shape.size)
+        if min(shape.size) <= 0:
+            _fail(f"{key}.shape.size", list(shape.size), "every extent of the box the body fits in must be > 0")
+        if shape.body is None and not shape.file:
+            _fail(f"{key}.shape.body", shape.body, "a body shape needs a library body or a body file (shape.file)")
+        if shape.body is not None and shape.file:
+            _fail(f"{key}.shape.body", shape.body, f"give a library body or a body file ({shape.file!r}), not both")
+        if shape.body is not None and shape.body not in LIBRARY_BODIES:
+            _fail(f"{key}.shape.body", shape.body, f"one of {', '.join(LIBRARY_BODIES)}")
     if not shape.scale > 0 or not shape.voxel_size > 0:
         _fail(f"{key}.shape.scale", shape.scale, "scale and voxel_size must be > 0")
     if mat.kind not in MATERIALS:
@@ -223,6 +247,11 @@ def _validate_body(key: str, body: BodySpec) -> None:
             _fail(f"{key}.muscles.fiber", list(m.fiber), "a non-zero direction")
         if m.stiffness_ratio < 0:
             _fail(f"{key}.muscles.stiffness_ratio", m.stiffness_ratio, "must be >= 0")
+        if m.layout not in MUSCLE_LAYOUTS:
+            _fail(f"{key}.muscles.layout", m.layout, f"one of {', '.join(MUSCLE_LAYOUTS)}")
+        if m.layout == "body" and shape.kind != "body":
+            _fail(f"{key}.muscles.layout", m.layout, f"only a body shape has its own muscles, not a {shape.kind}; "
+                  "use grid")
 
 
 def _validate_plasticity(key: str, mat: MaterialSpec) -> None:

@@ -1,0 +1,249 @@
+"""The design representations beyond `particle`: fields, gradients, parameter counts, primitives.
+
+Everything here is torch on a box workspace, no physics (the end-to-end gradient through the
+simulator is in tests/mpm/test_designs_env.py).
+"""
+
+import numpy as np
+import pytest
+import torch
+
+from codesign.bodies import lattice
+from codesign.errors import RecipeError
+from codesign.geometry import grid_partition
+from codesign.interfaces import DesignSpace
+from codesign.plugins import get_registry
+from codesign.schema import convert
+from codesign_designs.primitives import primitive_muscle
+from codesign_designs.rotations import facing_heading, fiber_rotations, special_procrustes
+from codesign_designs.wasserstein import debiased_barycenter
+
+NEW = ["voxel", "implicit", "diff_cppn", "sdf_lerp", "wasserstein"]
+E0 = 2e4
+LO, HI = np.zeros(3), np.array([0.2, 0.08, 0.08])
+
+
+@pytest.fixture(autouse=True)
+def small_tensors():
+    """float64 (finite differences) and one torch thread: on two shared cores, threads cost more
+    than they bring to tensors this small."""
+    dtype, threads = torch.get_default_dtype(), torch.get_num_threads()
+    torch.set_default_dtype(torch.float64)
+    torch.set_num_threads(1)
+    yield
+    torch.set_default_dtype(dtype)
+    torch.set_num_threads(threads)
+
+
+def box_space(k: int = 4, spacing: float = 0.01, bare: bool = False) -> DesignSpace:
+    points = lattice(LO, HI, spacing)
+    if bare:
+        return DesignSpace(points=points, n_actuators=k, default_stiffness=E0)
+    return DesignSpace(points=points, n_actuators=k, default_stiffness=E0, bounds=np.stack([LO, HI]),
+                       muscle=np.eye(k)[grid_partition(points, (k, 1, 1))],
+                       fiber=np.tile([1.0, 0, 0], (len(points), 1)))
+
+
+def build(name: str, space: DesignSpace | None = None, seed: int = 0, **config):
+    entry = get_registry().get("representation", name)
+    representation = entry.load_factory()(entry.load_config()(**config))
+    representation.setup(box_space() if space is None else space, np.random.default_rng(seed))
+    return representation
+
+
+def test_every_representation_is_registered_with_a_valid_default_config():
+    registry = get_registry()
+    for name in ["particle", *NEW]:
+        entry = registry.get("representation", name)
+        assert entry.description and convert(entry.load_config(), {})[1] == []
+
+
+@pytest.mark.parametrize("name", NEW)
+def test_fields_have_the_design_space_shapes_and_ranges(name):
+    space = box_space()
+    design = build(name, space)()
+    n = len(space.points)
+    assert design.occupancy.shape == (n,) and design.stiffness.shape == (n,)
+    assert design.muscle.shape == (n, 4) and design.fiber.shape == (n, 3)
+    assert 0 <= design.occupancy.min() and design.occupancy.max() <= 1 and (design.occupancy >= 0.5).any()
+    assert (design.stiffness > 0).all() and (design.muscle >= 0).all()
+    assert (design.muscle.sum(1) <= 1 + 1e-9).all()  # a membership: softmax rows, or passive (zero) rows
+    torch.testing.assert_close(design.fiber.norm(dim=1), torch.ones(n))
+
+
+@pytest.mark.parametrize("name, k", [(name, k) for name in NEW for k in (1, 4)])
+def test_parameter_counts_are_the_documented_ones(name, k):
+    representation = build(name, box_space(k))
+    count = sum(t.numel() for t in representation.parameters())
+    expected = {"voxel": 8 * 3 * 3 * (2 + k), "implicit": 1378 + 33 * k, "diff_cppn": 1982 + 21 * k,
+                "sdf_lerp": 4 * 5, "wasserstein": 4 * 5}[name]
+    assert count == expected and all(t.requires_grad for t in representation.parameters())
+
+
+@pytest.mark.parametrize("name, config", [("voxel", dict(muscle_init="random")), ("implicit", {}), ("diff_cppn", {}),
+                                          ("sdf_lerp", dict(init_noise=0.5)), ("wasserstein", dict(init_noise=0.5))])
+def test_initialisation_comes_from_the_given_generator(name, config):
+    first, again, other = (build(name, seed=s, **config).parameters() for s in (1, 1, 2))
+    assert all(torch.equal(a, b) for a, b in zip(first, again))
+    assert not all(torch.equal(a, b) for a, b in zip(first, other))
+
+
+@pytest.mark.parametrize("name, config", [
+    ("voxel", {}), ("voxel", dict(interpolation="nearest", muscle_init="random")), ("implicit", {}),
+    ("diff_cppn", {}), ("sdf_lerp", dict(init_noise=0.3)), ("wasserstein", dict(init_noise=0.3, resolution=12))])
+def test_gradient_of_a_loss_on_the_fields_matches_finite_differences(name, config):
+    representation = build(name, box_space(spacing=0.02), **config)
+    design = representation()
+    rng = np.random.default_rng(3)
+    weights = [torch.tensor(rng.normal(size=tuple(t.shape))) for t in (design.occupancy, design.stiffness,
+                                                                         design.muscle, design.fiber)]
+
+    def loss() -> torch.Tensor:
+        d = representation()
+        fields = (d.occupancy, d.stiffness / E0, d.muscle, d.fiber)
+        return sum((w * f).sum() for w, f in zip(weights, fields))
+
+    loss().backward()
+    for tensor in representation.parameters():
+        grad = tensor.grad.reshape(-1)
+        for index in {int(grad.abs().argmax()), int(rng.integers(grad.numel()))}:
+            flat, eps = tensor.data.reshape(-1), 1e-6
+            with torch.no_grad():
+                flat[index] += eps
+                up = loss().item()
+                flat[index] -= 2 * eps
+                down = loss().item()
+                flat[index] += eps
+            assert grad[index].item() == pytest.approx((up - down) / (2 * eps), rel=1e-5, abs=1e-7)
+
+
+def one_hot(representation, i: int) -> None:
+    with torch.no_grad():
+        for logits in representation.parameters():
+            logits.fill_(-1e4)
+            logits[i] = 0.0
+
+
+@pytest.mark.parametrize("primitive", range(5))
+def test_sdf_lerp_with_a_one_hot_weight_is_that_primitive(primitive):
+    space = box_space(spacing=0.005)
+    representation = build("sdf_lerp", space)
+    one_hot(representation, primitive)
+    design = representation()
+    body = representation.placed[primitive]
+    labels = body.labels(space.points)
+    inside = body.contains(space.points)
+    assert inside.sum() > 200
+    np.testing.assert_array_equal(design.occupancy.detach().numpy() > 0.5, inside)
+    np.testing.assert_allclose(design.stiffness.detach().numpy(), E0 * labels.stiffness)
+    np.testing.assert_allclose(design.muscle.detach().numpy(), primitive_muscle(labels.groups, 4))
+    np.testing.assert_allclose(design.fiber.detach().numpy(), facing_heading(labels.fibers), atol=1e-9)
+    lo, hi = body.bounds
+    assert lo[1] == pytest.approx(LO[1]) and (lo + hi)[[0, 2]] / 2 == pytest.approx((LO + HI)[[0, 2]] / 2)
+
+
+def rotation_z(degrees: float) -> torch.Tensor:
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_procrustes_average_of_rotations():
+    r = torch.tensor(fiber_rotations(np.array([[0.3, -0.5, 0.8]])))[0]
+    torch.testing.assert_close(special_procrustes(0.3 * r + 0.7 * r), r)  # identical rotations: that rotation
+    for w in (0.5, 0.2, 0.9):  # two rotations about z: a rotation about z between them, halfway at w = 1/2
+        mean = special_procrustes(w * rotation_z(10.0) + (1 - w) * rotation_z(70.0)).numpy()
+        angle = np.degrees(np.arctan2(mean[1, 0], mean[0, 0]))
+        chord = np.degrees(np.arctan2(w * np.sin(np.radians(10)) + (1 - w) * np.sin(np.radians(70)),
+                                      w * np.cos(np.radians(10)) + (1 - w) * np.cos(np.radians(70))))
+        assert 10 < angle < 70 and angle == pytest.approx(chord) and mean[2, 2] == pytest.approx(1.0)
+    assert np.degrees(np.arctan2(*special_procrustes(rotation_z(10.0) + rotation_z(70.0)).numpy()[[1, 0], 0])) == \
+        pytest.approx(40.0)
+    reflection = torch.diag(torch.tensor([1.0, 1.0, -1.0]))  # nearest rotation, never a reflection
+    assert torch.linalg.det(special_procrustes(reflection + 0.1 * torch.eye(3))) == pytest.approx(1.0)
+    generic = torch.tensor(np.random.default_rng(0).normal(size=(4, 3, 3)), requires_grad=True)
+    at_rotation = torch.tensor(fiber_rotations(np.random.default_rng(1).normal(size=(4, 3))), requires_grad=True)
+    assert torch.autograd.gradcheck(special_procrustes, (generic,))
+    assert torch.autograd.gradcheck(special_procrustes, (at_rotation,))  # repeated singular values
+
+
+def test_fibres_are_rotations_of_the_heading_that_face_it():
+    fibers = np.random.default_rng(2).normal(size=(50, 3))
+    rotations = fiber_rotations(fibers)
+    np.testing.assert_allclose(rotations @ np.array([1.0, 0, 0]), facing_heading(fibers), atol=1e-12)
+    np.testing.assert_allclose(rotations @ np.swapaxes(rotations, 1, 2), np.tile(np.eye(3), (50, 1, 1)), atol=1e-12)
+    assert (facing_heading(fibers)[:, 0] >= 0).all()
+
+
+@pytest.mark.parametrize("primitive", [0, 1, 4])
+def test_wasserstein_with_a_one_hot_weight_is_that_primitive(primitive):
+    space = box_space(spacing=0.005)
+    representation = build("wasserstein", space)
+    one_hot(representation, primitive)
+    mass = representation.mass().detach()
+    own = representation.occupancy[primitive]
+    assert (mass - own).abs().max() < 0.06 and (mass - own).abs().mean() < 0.005
+    inside = representation.placed[primitive].contains(space.points)
+    agree = (representation().occupancy.detach().numpy() > 0.5) == inside
+    assert agree.mean() > 0.97
+
+
+def test_wasserstein_keeps_total_mass_for_mixed_weights():
+    representation = build("wasserstein", box_space(spacing=0.02), resolution=12)
+    for seed in range(3):
+        weights = torch.softmax(torch.tensor(np.random.default_rng(seed).normal(size=5)), 0)
+        assert representation.mass(weights).sum().item() == pytest.approx((weights @ representation.volumes).item())
+
+
+def test_the_barycenter_moves_mass_continuously_between_primitives():
+    """Two boxes of widths 6 and 8 voxels, 12 apart: weighted t, the barycenter is a box of width
+    6 + 2t whose centre slides linearly (displacement interpolation), never a fade of the two."""
+    shape = (24, 10, 10)
+    boxes = np.zeros((2,) + shape)
+    boxes[0, 2:8, 2:8, 2:8] = 1
+    boxes[1, 14:22, 2:8, 2:8] = 1
+    density = (boxes + 1e-12) / (boxes + 1e-12).sum((1, 2, 3), keepdims=True)
+    kernels = [torch.tensor(np.exp(-np.subtract.outer(np.arange(n), np.arange(n)) ** 2 / (2 * 0.7 ** 2)))
+               for n in shape]
+
+    def barycenter(t: float) -> np.ndarray:
+        return debiased_barycenter(torch.tensor(np.log(density)), torch.tensor([1 - t, t]), kernels, 60).numpy()
+
+    ts = np.linspace(0, 1, 11)
+    profiles = [barycenter(t).sum((1, 2)) for t in ts]
+    centres = [p @ np.arange(24) for p in profiles]
+    np.testing.assert_allclose(centres, 4.5 + ts * (17.5 - 4.5), atol=0.05)
+    middle = profiles[5] * boxes[0].sum()  # voxels of mass per x slice, halfway
+    assert middle[:7].sum() < 0.5 and middle[16:].sum() < 0.5 and middle[8:15].min() > 25  # moved, not faded
+    base = barycenter(0.4)
+    steps = [np.abs(barycenter(0.4 + dt) - base).sum() for dt in (1e-2, 1e-3)]
+    assert 0 < steps[1] < 0.05 and steps[0] / steps[1] == pytest.approx(10, rel=0.2)  # small change, linearly
+
+
+@pytest.mark.parametrize("name", ["particle", "voxel"])
+def test_muscles_can_start_as_the_environments_own(name):
+    space = box_space()
+    space.muscle = np.eye(4)[(space.points[:, 1] > 0.04).astype(int) + 2 * (space.points[:, 2] > 0.04)]  # not a grid
+    muscle = build(name, space, muscle_init="environment", muscle_sharpness=8.0)().muscle.detach().numpy()
+    own = muscle.argmax(1) == space.muscle.argmax(1)
+    assert own.mean() > (0.999 if name == "particle" else 0.8)
+
+
+def test_a_design_space_without_the_optional_fields_still_works():
+    space = box_space(bare=True)
+    for name in NEW:  # the workspace is the points' bounding box, fibres (but the primitives') the heading
+        design = build(name, space)()
+        assert design.occupancy.shape == (len(space.points),)
+        if name in ("voxel", "implicit", "diff_cppn"):
+            torch.testing.assert_close(design.fiber, torch.tensor([[1.0, 0.0, 0.0]]).expand(len(space.points), 3))
+
+
+@pytest.mark.parametrize("name, config, message", [
+    ("sdf_lerp", dict(primitives=["fish", "walrus"]), r"representation.primitives\[1\]: 'walrus' is neither"),
+    ("wasserstein", dict(primitives=["no/such/file.obj"]), r"representation.primitives\[0\]"),
+    ("voxel", dict(fiber=[0.0, 0.0, 0.0]), r"representation.fiber: \[0.0, 0.0, 0.0\] is not a non-zero"),
+    ("implicit", dict(min_stiffness_ratio=2.0, max_stiffness_ratio=1.0), r"representation.min_stiffness_ratio"),
+])
+def test_bad_configs_are_recipe_errors(name, config, message):
+    entry = get_registry().get("representation", name)
+    with pytest.raises(RecipeError, match=message):
+        entry.load_factory()(entry.load_config()(**config))
