@@ -127,6 +127,19 @@ def resolve_recipe(
     return ResolvedRecipe(settings, sections, plain)
 
 
+def resolve_section(kind: str, data: Mapping[str, Any], *, registry: Registry | None = None) -> Section:
+    """Validate one component section (``name`` plus parameters) as a recipe would."""
+    if registry is None:
+        from codesign.plugins import get_registry
+
+        registry = get_registry()
+    problems: list[Problem] = []
+    section = _section(kind, dict(data), registry, problems)
+    if problems or section is None:
+        raise RecipeError(f"invalid {kind}: " + "\n  ".join(map(str, problems)))
+    return section
+
+
 def find_recipe(ref: str, relative_to: Path | None = None) -> Path:
     """Resolve a recipe path (relative to ``relative_to`` or the cwd), else a bare name in ``recipes/``."""
     direct = (relative_to / ref) if relative_to else Path(ref)

@@ -3,29 +3,26 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-import torch
 
+from codesign.artifacts import play
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
 from codesign_basics.config import EvaluateConfig
-
-
-def _to_numpy(value: Any) -> Any:
-    return value.detach().cpu().numpy() if isinstance(value, torch.Tensor) else np.asarray(value)
 
 
 class Evaluate(Optimizer):
     """Runs ``episodes`` episodes, one per iteration, and reports their returns.
 
-    Each episode resets the environment with a seed drawn from the run's
-    generator, so repeated episodes differ only where the environment is random.
+    Each episode resets the environment with a seed drawn from the run's generator, so
+    repeated episodes differ only where the environment is random. Each episode's centre of
+    mass and actions per step go to ``trajectory-<i>.npz`` in the run directory.
     """
 
     def __init__(self, config: EvaluateConfig) -> None:
         self.config = config
         self.iterations = config.episodes
+        self.episode = 0
 
     def setup(
         self,
@@ -40,22 +37,22 @@ class Evaluate(Optimizer):
         self.representation = representation
         self.controller = controller
         self.rng = rng
+        self.run_dir = run_dir
 
-    @torch.no_grad()  # nothing is trained, so keep no autograd graph over the episode
     def step(self) -> dict[str, float]:
-        env = self.environment
-        observation = env.reset(design=self.representation(), seed=int(self.rng.integers(2**31)))
-        self.controller.reset()
-        episode_return, length = 0.0, 0
-        for t in range(env.horizon):
-            result = env.step(_to_numpy(self.controller(observation, t)))
-            episode_return += float(result.reward)
-            length += 1
-            observation = result.observation
-            if result.done:
-                break
+        record = play(self.environment, self.representation(), self.controller, seed=int(self.rng.integers(2**31)))
+        if self.run_dir is not None:
+            np.savez_compressed(Path(self.run_dir) / f"trajectory-{self.episode}.npz", com=record.com,
+                                actions=record.actions, episode_return=record.episode_return)
+        self.episode += 1
         return {
-            "episode_return": episode_return,
-            "mean_reward": episode_return / max(length, 1),
-            "episode_length": float(length),
+            "episode_return": record.episode_return,
+            "mean_reward": record.episode_return / max(record.length, 1),
+            "episode_length": float(record.length),
         }
+
+    def state_dict(self) -> dict:
+        return {"episode": self.episode}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.episode = state["episode"]

@@ -14,6 +14,20 @@ def codesign_register(registry: PluginRegistrar) -> None:
         "Open-loop sine-basis controller (SoftZoo): bound * tanh(sum alpha sin(omega t + phi) + beta).",
     )
     registry.add(
+        "controller",
+        "mlp",
+        "codesign_basics.mlp:MLPController",
+        "codesign_basics.config:MLPConfig",
+        "Closed-loop MLP on observations: bound * tanh(MLP(obs)), or the weights of the sine basis.",
+    )
+    registry.add(
+        "controller",
+        "trajectory",
+        "codesign_basics.trajectory:TrajectoryController",
+        "codesign_basics.config:TrajectoryConfig",
+        "Free per-step actions bound * tanh(logits[t]), for trajectory optimisation (open loop).",
+    )
+    registry.add(
         "optimizer",
         "evaluate",
         "codesign_basics.evaluate:Evaluate",

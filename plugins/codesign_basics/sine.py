@@ -30,7 +30,7 @@ class SineController(Controller):
         shape = (action_dim, len(cfg.frequencies), cfg.phases)
         dtype = torch.get_default_dtype()
         self.alpha = torch.tensor(rng.normal(0.0, cfg.init_std, shape), dtype=dtype, requires_grad=True)
-        self.beta = torch.zeros(action_dim, dtype=dtype, requires_grad=True)
+        self.beta = torch.zeros(shape, dtype=dtype, requires_grad=True)
         self._omega = torch.tensor(cfg.frequencies, dtype=dtype)
         self._phi = torch.arange(cfg.phases, dtype=dtype) * (2 * math.pi / cfg.phases)
         self._control_dt = control_dt
@@ -43,4 +43,4 @@ class SineController(Controller):
             raise RuntimeError("SineController.setup() must be called before use")
         t = step * self._control_dt
         basis = torch.sin(self._omega[:, None] * t + self._phi[None, :])  # (I, J)
-        return self.config.bound * torch.tanh((self.alpha * basis).sum(dim=(1, 2)) + self.beta)
+        return self.config.bound * torch.tanh((self.alpha * basis + self.beta).sum(dim=(1, 2)))

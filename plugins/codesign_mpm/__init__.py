@@ -9,15 +9,20 @@ Usable as a library without the registry::
 
 Importing this package does not import Taichi; `Simulator` is loaded on first use.
 """
+import sys
+
 from codesign_mpm.sampling import Particles, build_particles
 from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
+
+if "gymnasium" in sys.modules:  # register the Gymnasium ids now; otherwise `import codesign_mpm.gym` does
+    import codesign_mpm.gym  # noqa: F401
 
 __all__ = ["BodySpec", "MaterialSpec", "MuscleSpec", "Particles", "Scene", "SceneError", "ShapeSpec",
            "Simulator", "SimulationError", "TerrainSpec", "build_particles"]
 
 
 def __getattr__(name: str):
-    if name in ("Simulator", "SimulationError", "Gradients", "Rollout", "time_step"):
+    if name in ("Simulator", "SimulationError", "Gradients", "Rollout", "State", "time_step"):
         from codesign_mpm import engine
 
         return getattr(engine, name)

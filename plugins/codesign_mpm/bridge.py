@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from codesign_mpm.engine import Simulator
+from codesign_mpm.engine import Simulator, State
 
 DESIGN_INPUTS = ("volume", "youngs_modulus", "muscle", "fiber")
 STATE_INPUTS = ("x0", "v0")
@@ -72,3 +72,55 @@ def simulate(sim: Simulator, actions: torch.Tensor, *, volume: torch.Tensor | No
     initial state are restored and it is recomputed first (correct, at the cost of one forward).
     """
     return _Rollout.apply(sim, checkpoint_every, actions, volume, youngs_modulus, muscle, fiber, x0, v0)
+
+
+STATE_FIELDS = ("x", "v", "C", "F", "Jp")
+
+
+class _Frame(torch.autograd.Function):
+    """One control step from a given state, for closed-loop episodes: the action may depend on
+    the state, so each step is its own autograd node and gradients flow through observations.
+    The design inputs must be the simulator's current design (`step_frame` sets it); autograd
+    sums their gradients over the steps."""
+
+    @staticmethod
+    def forward(ctx, sim: Simulator, checkpoint_every, action, x, v, C, F, Jp, *design):
+        ctx.sim, ctx.checkpoint_every = sim, checkpoint_every
+        ctx.action = action.detach().cpu().numpy()[None]
+        ctx.start = State(*(t.detach().cpu().numpy() for t in (x, v, C, F, Jp)))
+        ctx.snapshot = sim.snapshot()
+        out = sim.rollout(ctx.action, checkpoint_every=checkpoint_every, start=ctx.start)
+        ctx.rollout_id = sim.rollouts
+        ctx.dtype, ctx.device = x.dtype, x.device
+        return tuple(torch.as_tensor(getattr(out.final, name), dtype=x.dtype, device=x.device)
+                     for name in STATE_FIELDS)
+
+    @staticmethod
+    def backward(ctx, *grad_state):
+        sim = ctx.sim
+        if sim.rollouts != ctx.rollout_id or not sim.rollout_is_current:  # later steps ran: replay this one
+            sim.restore(ctx.snapshot)
+            sim.rollout(ctx.action, checkpoint_every=ctx.checkpoint_every, start=ctx.start)
+            ctx.rollout_id = sim.rollouts
+        seeds = {name: None if g is None else g.detach().cpu().numpy().astype(np.float64)
+                 for name, g in zip(STATE_FIELDS, grad_state)}
+        grads = sim.backward(**seeds)
+
+        def dev(a):
+            return torch.as_tensor(a, dtype=ctx.dtype, device=ctx.device)
+
+        return (None, None, dev(grads.actions[0]),
+                *(dev(g) for g in (grads.x0, grads.v0, grads.C0, grads.F0, grads.Jp0)),
+                *(dev(getattr(grads, name)) for name in DESIGN_INPUTS))
+
+
+def step_frame(sim: Simulator, state: tuple[torch.Tensor, ...], action: torch.Tensor,
+               design: tuple[torch.Tensor, ...], checkpoint_every: int | None = None) -> tuple[torch.Tensor, ...]:
+    """Differentiable control step: state (x, v, C, F, Jp) -> the state one frame later, holding
+    `action`, for the design (volume, youngs_modulus, muscle, fiber), which is applied to `sim`
+    if it differs from its current one."""
+    current = sim.particles
+    host = [t.detach().cpu().numpy() for t in design]
+    if not all(np.array_equal(h, getattr(current, name)) for h, name in zip(host, DESIGN_INPUTS)):
+        sim.set_design(**dict(zip(DESIGN_INPUTS, host)))
+    return _Frame.apply(sim, checkpoint_every, action, *state, *design)

@@ -1,0 +1,104 @@
+"""Differentiable episodes: a design and a controller in, minus the summed task reward out.
+
+Two paths, chosen per episode:
+
+- **open loop** (a controller with `open_loop = True`, e.g. `sine` or `trajectory`, and a
+  task that reads only the centre of mass): all actions are computed first and the episode is
+  one checkpointed rollout through the torch bridge (`bridge.simulate`): memory grows with
+  T / S + S states;
+- **closed loop** (anything else): each control step is its own autograd node
+  (`bridge.step_frame`), so the action at step t may depend on the observation of the state
+  at step t and gradients flow back through it. Torch keeps each step's input state (about
+  200 bytes per particle per step in float64).
+
+Design fields enter as the simulator's per-particle inputs (volume = sampled volume x
+occupancy, Young's modulus, muscle membership, fibre); particles under the occupancy
+threshold are dropped, as in every other episode, so they receive no gradient.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import numpy as np
+import torch
+
+from codesign.interfaces import Controller, DesignFields
+from codesign_mpm.bridge import simulate, step_frame
+from codesign_mpm.env import OCCUPANCY_THRESHOLD, LocomotionEnv
+from codesign_mpm.sampling import Particles
+from codesign_mpm.tasks import RobotFrame
+
+DTYPE = torch.float64
+
+
+@dataclass
+class Episode:
+    loss: torch.Tensor  # scalar: minus the summed reward
+    rewards: torch.Tensor  # (T,)
+    com: np.ndarray  # (T + 1, 3) robot centre of mass per frame
+    actions: np.ndarray  # (T, K)
+
+    @property
+    def episode_return(self) -> float:
+        return float(self.rewards.sum())
+
+
+def _tensor(value, shape) -> torch.Tensor:
+    return torch.as_tensor(value).to(DTYPE).reshape(shape)
+
+
+def design_inputs(env: LocomotionEnv, design: DesignFields) -> tuple[Particles, tuple[torch.Tensor, ...]]:
+    """The design's particles (robot, then cover) and its differentiable per-particle inputs
+    (volume, Young's modulus, muscle, fibre), the cover's as constants."""
+    base, cover = env.base_particles, env.cover_particles
+    particles = env.design_particles(design)
+    occupancy = _tensor(design.occupancy, (base.n,))
+    keep = torch.as_tensor(occupancy.detach().numpy() >= OCCUPANCY_THRESHOLD)
+    robot = (
+        torch.as_tensor(base.volume, dtype=DTYPE)[keep] * occupancy[keep],
+        _tensor(design.stiffness, (base.n,))[keep],
+        _tensor(design.muscle, base.muscle.shape)[keep],
+        _tensor(design.fiber, (base.n, 3))[keep],
+    )
+    constant = (cover.volume, cover.youngs_modulus, np.zeros((cover.n, base.n_actuators)), cover.fiber)
+    inputs = tuple(torch.cat([r, torch.as_tensor(c, dtype=DTYPE)]) for r, c in zip(robot, constant))
+    return particles, inputs
+
+
+def run_episode(env: LocomotionEnv, design: DesignFields, controller: Controller,
+                checkpoint_every: int | None = None) -> Episode:
+    particles, inputs = design_inputs(env, design)
+    volume, stiffness, muscle, fiber = inputs
+    sim = env.grad_simulator(particles)
+    env._start_task(particles)
+    controller.reset()
+    n, dt, T = env._n_robot, env.control_dt, env.horizon
+    density = torch.as_tensor(particles.density[:n], dtype=DTYPE)
+    mass = volume[:n] * density  # differentiable in the occupancy
+    weights = mass / mass.sum()
+    if getattr(controller, "open_loop", False) and not env.task.needs_particles:
+        actions = torch.stack([torch.as_tensor(controller(None, t)).to(DTYPE) for t in range(T)])
+        com_x, com_v, _, _ = simulate(sim, actions, volume=volume, youngs_modulus=stiffness, muscle=muscle,
+                                      fiber=fiber, checkpoint_every=checkpoint_every)
+        rewards = torch.stack([env.task.reward(RobotFrame(t, t * dt, com_x[t], com_v[t])) for t in range(1, T + 1)])
+        com = com_x.detach().numpy()
+    else:
+        state = (torch.as_tensor(particles.x, dtype=DTYPE), torch.as_tensor(particles.v, dtype=DTYPE),
+                 torch.zeros(particles.n, 3, 3, dtype=DTYPE), torch.eye(3, dtype=DTYPE).expand(particles.n, 3, 3),
+                 torch.ones(particles.n, dtype=DTYPE))
+        cover_x = None
+        rewards, coms, actions = [], [(weights @ state[0][:n]).detach().numpy()], []
+        robot_muscle = muscle[:n]
+        for t in range(T):
+            x, v = state[0][:n], state[1][:n]
+            if env.config.observation.occupancy:
+                cover_x = state[0][n:].detach().numpy()
+            observation = env.observer(t, x, v, mass, robot_muscle, cover_x)
+            action = torch.as_tensor(controller(observation, t)).to(DTYPE)
+            actions.append(action)
+            state = step_frame(sim, state, action, inputs, checkpoint_every)
+            x, v, F = state[0][:n], state[1][:n], state[3][:n]
+            frame = RobotFrame(t + 1, (t + 1) * dt, weights @ x, weights @ v, mass, x, v, F)
+            rewards.append(env.task.reward(frame))
+            coms.append(frame.com_x.detach().numpy())
+        rewards, actions, com = torch.stack(rewards), torch.stack(actions), np.stack(coms)
+    return Episode(-rewards.sum(), rewards, com, actions.detach().numpy())

@@ -1,0 +1,130 @@
+"""Differentiable episodes (float64): the loss is minus the episode's summed reward, and its
+gradient with respect to controller and design parameters matches central differences for
+an open-loop (`sine`, `trajectory`: one checkpointed rollout) and a closed-loop controller
+(`mlp`: one autograd node per control step). Also the Gymnasium wrapper.
+
+One small scene layout throughout, so the backward kernels compile once.
+"""
+import numpy as np
+import pytest
+import torch
+
+from codesign_basics.config import MLPConfig, SineConfig, TrajectoryConfig
+from codesign_basics.mlp import MLPController
+from codesign_basics.sine import SineController
+from codesign_basics.trajectory import TrajectoryController
+from codesign_designs.config import ParticleConfig
+from codesign_designs.particle import ParticleRepresentation
+from codesign_mpm.config import PRESET_CONFIGS, PRESETS, RobotConfig, TaskConfig, TerrainConfig
+from codesign_mpm.env import LocomotionEnv
+
+pytestmark = pytest.mark.slow
+HORIZON = 4
+
+
+def make_env(task: str = "movement_speed") -> LocomotionEnv:
+    config = PRESET_CONFIGS["ground"](dx=1 / 32, horizon=HORIZON, dtype="float64",
+                                      terrain=TerrainConfig(height=0.1, friction=0.5),
+                                      robot=RobotConfig(size=[0.16, 0.08, 0.08]), task=TaskConfig(name=task))
+    return LocomotionEnv(config, PRESETS["ground"])
+
+
+@pytest.fixture(scope="module")
+def env():
+    environment = make_env()
+    yield environment
+    environment.close()
+
+
+def parts(env, controller, seed=0):
+    rep = ParticleRepresentation(ParticleConfig())
+    rep.setup(env.design_space, np.random.default_rng(seed))
+    controller.setup(env.action_dim, env.observation_dim, env.control_dt, np.random.default_rng(seed + 1))
+    return rep, controller
+
+
+CONTROLLERS = {
+    "sine": lambda: SineController(SineConfig(init_std=1.0)),
+    "mlp": lambda: MLPController(MLPConfig(hidden=[16], init_std=1.0)),
+    "trajectory": lambda: TrajectoryController(TrajectoryConfig(steps=HORIZON, init_std=1.0)),
+}
+
+
+def stepped_return(env, rep, controller) -> float:
+    """The same episode through reset/step, as an RL algorithm would see it."""
+    total = 0.0
+    with torch.no_grad():
+        observation = env.reset(rep())
+        controller.reset()
+        for t in range(env.horizon):
+            result = env.step(controller(observation, t).numpy())
+            total, observation = total + result.reward, result.observation
+    return total
+
+
+@pytest.mark.parametrize("name", list(CONTROLLERS))
+def test_loss_is_minus_the_return_and_its_gradient_matches_finite_differences(env, name):
+    torch.set_default_dtype(torch.float64)
+    try:
+        rep, controller = parts(env, CONTROLLERS[name]())
+        episode = env.differentiable_episode(rep(), controller)
+        assert float(episode.loss) == pytest.approx(-stepped_return(env, rep, controller), rel=1e-9, abs=1e-12)
+        episode.loss.backward()
+        probes = [(controller.parameters()[0], (0,) * controller.parameters()[0].dim()), (rep.stiffness, (3,)),
+                  (rep.geometry, (5,)), (rep.muscle, (7, 1))]
+        for tensor, index in probes:
+            analytic = tensor.grad[index].item()
+
+            def loss(eps):
+                with torch.no_grad():
+                    tensor[index] += eps
+                    value = float(env.differentiable_episode(rep(), controller).loss)
+                    tensor[index] -= eps
+                return value
+
+            numeric = (loss(1e-6) - loss(-1e-6)) / 2e-6
+            scale = tensor.grad.abs().max().item()  # tiny entries are judged against their tensor's scale
+            assert analytic == pytest.approx(numeric, rel=1e-4, abs=1e-4 * scale), (name, index)
+    finally:
+        torch.set_default_dtype(torch.float32)
+
+
+def test_a_task_that_reads_particles_takes_the_per_step_path_with_an_open_loop_controller():
+    env = make_env("turning")
+    torch.set_default_dtype(torch.float64)
+    try:
+        rep, controller = parts(env, SineController(SineConfig(init_std=1.0)), seed=3)
+        episode = env.differentiable_episode(rep(), controller)
+        assert float(episode.loss) == pytest.approx(-stepped_return(env, rep, controller), rel=1e-9, abs=1e-12)
+        episode.loss.backward()
+        analytic = controller.alpha.grad[1, 0, 2].item()
+        values = []
+        for eps in (1e-6, -1e-6):
+            with torch.no_grad():
+                controller.alpha[1, 0, 2] += eps
+                values.append(float(env.differentiable_episode(rep(), controller).loss))
+                controller.alpha[1, 0, 2] -= eps
+        assert analytic == pytest.approx((values[0] - values[1]) / 2e-6, rel=1e-4, abs=1e-10)
+    finally:
+        torch.set_default_dtype(torch.float32)
+        env.close()
+
+
+@pytest.mark.parametrize("env_id", ["codesign/Ground-MovementSpeed-v0", "codesign/Ocean-WaypointFollowing-v0"])
+def test_gymnasium_environments_pass_the_checker(env_id):
+    gymnasium = pytest.importorskip("gymnasium")
+    from gymnasium.utils.env_checker import check_env
+
+    env = gymnasium.make(f"codesign_mpm.gym:{env_id}", environment={"dx": 1 / 24, "horizon": 5,
+                         "observation": {"muscle_centroids": True, "time": True}})
+    try:
+        check_env(env.unwrapped, skip_render_check=True)
+        observation, _ = env.reset(seed=1)
+        assert observation.shape == env.observation_space.shape == (3 + 3 + 6 * 4 + 3 + 1,)
+        assert np.isfinite(observation).all()
+        first = env.step(env.action_space.sample())[0]
+        again, _ = env.reset(seed=1)
+        np.testing.assert_array_equal(again, observation)
+        np.testing.assert_array_equal(env.step(np.zeros(4, np.float32))[0].shape, first.shape)
+    finally:
+        env.close()
