@@ -67,7 +67,23 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
 
             resolved = load_recipe(recipe, overrides or [])
             directory = runner.run(resolved, run_dir=run_dir, progress=not no_progress)
+        report = runner.progress_report(directory)
+        if report:
+            _stderr.print(report, markup=False, highlight=False, soft_wrap=True)
         typer.echo(str(directory))
+
+    @app.command("eval")
+    def evaluate(
+        run_dir: Path = typer.Argument(..., help="A run directory with a best/ design and controller."),
+        episodes: int = typer.Option(1, "--episodes", min=1, help="Episodes to replay."),
+    ) -> None:
+        """Replay a run's best design and controller and print the return of each episode."""
+        from codesign import runner
+
+        returns = runner.evaluate_best(run_dir, episodes)
+        for i, value in enumerate(returns):
+            typer.echo(f"episode {i}: return {value:.6g}")
+        typer.echo(f"mean return {sum(returns) / len(returns):.6g} over {len(returns)} episode(s)")
 
     @app.command()
     def show(

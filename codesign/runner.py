@@ -6,7 +6,9 @@ A run directory holds:
 - ``metrics.jsonl``: one JSON object per iteration (with ``iteration`` and ``wall_time``);
 - ``summary.json``: status, final and best metrics, wall time, versions, seed;
 - ``checkpoint.pkl``: optimizer state and RNG state after the last completed
-  iteration, from which :func:`resume` continues.
+  iteration, from which :func:`resume` continues;
+- ``learning_curve.png``: the episode return against iteration and wall time;
+- ``best/``: what the optimizer found (see :mod:`codesign.artifacts`).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from tqdm import tqdm
 
 from codesign.errors import CodesignError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
+from codesign.plots import CURVE_FILE, learning_curve
 from codesign.plugins import get_plugin_manager, get_registry
 from codesign.recipe import ResolvedRecipe, resolve_recipe
 from codesign.tracking import JsonlTracker, MultiTracker, Tracker, WandbTracker
@@ -169,12 +172,53 @@ def _execute(
         maximize = parts.optimizer.maximize if parts else {}
         summary = _summary(recipe, rows, maximize, status, error, wall_time())
         (run_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
+        curve = learning_curve(rows, run_dir / CURVE_FILE, recipe.name) if rows else None
         if tracker is not None:
+            if curve is not None:
+                tracker.log_image("learning_curve", curve)
             tracker.summary(summary)
             tracker.close()
         if parts is not None:
             parts.environment.close()
     return run_dir
+
+
+def progress_report(run_dir: Path) -> str:
+    """One line on how the run's episode return went: first, best (and when), where the curve is."""
+    rows = read_metrics(Path(run_dir) / METRICS_FILE)
+    returns = [(r["iteration"], r["episode_return"]) for r in rows if "episode_return" in r]
+    if not returns:
+        return ""
+    best_iteration, best = max(returns, key=lambda item: item[1])
+    curve = Path(run_dir) / CURVE_FILE
+    where = f"; learning curve: {curve}" if curve.is_file() else ""
+    return (f"episode return: first {returns[0][1]:.4g}, best {best:.4g} (iteration {best_iteration}), "
+            f"last {returns[-1][1]:.4g}{where}")
+
+
+def evaluate_best(run_dir: str | Path, episodes: int = 1) -> list[float]:
+    """Rebuild a run's parts from its config and replay its best design and controller."""
+    from codesign.artifacts import load_controller, load_design, play
+
+    directory = Path(run_dir)
+    config_path = directory / CONFIG_FILE
+    if not config_path.is_file():
+        raise CodesignError(f"{directory} is not a run directory (no {CONFIG_FILE})")
+    data = OmegaConf.to_container(OmegaConf.load(config_path), resolve=False)
+    assert isinstance(data, dict)
+    recipe = resolve_recipe(data)
+    parts = build_parts(recipe)
+    try:
+        rng = seed_everything(recipe.seed)
+        env = parts.environment
+        parts.representation.setup(env.design_space, rng)
+        parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
+        design = load_design(directory)
+        load_controller(directory, parts.controller)
+        return [play(env, design, parts.controller, seed=int(rng.integers(2**31))).episode_return
+                for _ in range(episodes)]
+    finally:
+        parts.environment.close()
 
 
 def _make_tracker(recipe: ResolvedRecipe, data: dict, run_dir: Path) -> Tracker:
@@ -237,11 +281,16 @@ def _versions() -> dict[str, str]:
     return versions
 
 
-def _kept_metrics(path: Path, completed: int) -> list[dict]:
-    """Rows of iterations covered by the checkpoint; later rows (logged, not checkpointed) are dropped."""
+def read_metrics(path: Path) -> list[dict]:
+    """The rows of a metrics.jsonl (none if it does not exist)."""
     if not path.exists():
         return []
-    rows = [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+
+
+def _kept_metrics(path: Path, completed: int) -> list[dict]:
+    """Rows of iterations covered by the checkpoint; later rows (logged, not checkpointed) are dropped."""
+    rows = read_metrics(path)
     kept = [row for row in rows if row.get("iteration", math.inf) < completed]
     if len(kept) != len(rows):
         path.write_text("".join(json.dumps(row) + "\n" for row in kept), encoding="utf-8")

@@ -24,6 +24,9 @@ class Tracker(ABC):
     def summary(self, summary: Mapping[str, Any]) -> None:
         """Record the run's final summary; ignored by default."""
 
+    def log_image(self, key: str, path: Path) -> None:
+        """Record a picture the run made (a plot); ignored by default (the file is in the run dir)."""
+
     def close(self) -> None:
         """Flush and release; called once, also when the run fails."""
 
@@ -71,6 +74,11 @@ class WandbTracker(Tracker):
     def summary(self, summary: Mapping[str, Any]) -> None:
         self._run.summary.update(dict(summary))
 
+    def log_image(self, key: str, path: Path) -> None:
+        import wandb
+
+        self._run.log({key: wandb.Image(str(path))})
+
     def close(self) -> None:
         self._run.finish()
 
@@ -88,6 +96,10 @@ class MultiTracker(Tracker):
     def summary(self, summary: Mapping[str, Any]) -> None:
         for tracker in self.trackers:
             tracker.summary(summary)
+
+    def log_image(self, key: str, path: Path) -> None:
+        for tracker in self.trackers:
+            tracker.log_image(key, path)
 
     def close(self) -> None:
         for tracker in self.trackers:

@@ -1,4 +1,5 @@
 import copy
+import sys
 
 import pytest
 
@@ -43,3 +44,14 @@ def cli(capsys):
         return info.value.code, out, err
 
     return run
+
+
+@pytest.fixture(autouse=True, scope="module")
+def fresh_taichi_program():
+    """Each module that simulates starts from a fresh Taichi program, so its fields get the same
+    ids whatever ran before, and Taichi's offline cache (keyed by them) hits whichever tests are
+    selected (codesign_mpm.runtime.reset)."""
+    runtime = sys.modules.get("codesign_mpm.runtime")
+    if runtime is not None:
+        runtime.reset()
+    yield

@@ -21,6 +21,7 @@ class ToyEnvConfig:
     n_actuators: int = field(default=2, metadata={"ge": 1})
     horizon: int = field(default=5, metadata={"ge": 1})
     control_dt: float = field(default=0.01, metadata={"gt": 0})
+    target_range: float = field(default=0.1, metadata={"ge": 0, "help": "targets are uniform in +-this"})
 
 
 class ToyEnvironment(Environment):
@@ -40,7 +41,8 @@ class ToyEnvironment(Environment):
         self.closed = False
 
     def reset(self, design: DesignFields | None = None, seed: int | None = None) -> np.ndarray:
-        self.target = np.random.default_rng(seed).uniform(-0.1, 0.1, self.action_dim)
+        r = self.config.target_range
+        self.target = np.random.default_rng(seed).uniform(-r, r, self.action_dim)
         self.t = 0
         return np.zeros(3)
 

@@ -703,6 +703,8 @@ _freed: list[_Storage] = []
 
 def _acquire(layout: Layout) -> _Storage:
     """A storage for `layout`: a released one if there is one (no compile), else a new one."""
+    for key in [k for k, (wanted, _) in _free.items() if wanted[0] != runtime.generation]:
+        del _free[key]  # fields of an earlier Taichi program: already gone
     for key, (wanted, storage) in reversed(_free.items()):
         if wanted == (runtime.generation, layout):
             del _free[key]

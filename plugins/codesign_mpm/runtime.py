@@ -33,3 +33,17 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
     )
     _current = wanted
     generation += 1
+
+
+def reset() -> None:
+    """Free every field and compiled kernel of this process; the next simulator starts afresh.
+
+    Taichi's offline cache keys kernels by, among others, the ids of the fields they touch,
+    which count up in allocation order; starting from a fresh program makes those ids (and so
+    cache hits) independent of whatever was simulated before in the process.
+    """
+    global _current, generation
+    if _current is not None:
+        ti.reset()
+        _current = None
+        generation += 1

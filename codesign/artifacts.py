@@ -1,0 +1,124 @@
+"""Playing episodes and keeping what a run found: the best design and controller, reloadable.
+
+A run directory's ``best/`` holds
+
+- ``design.npz``: the design fields (occupancy, stiffness, muscle, fiber) over the workspace
+  points, which is what an environment consumes, whatever representation or optimizer made it;
+- ``design.ply``: the particles the design keeps, coloured by muscle group (any point viewer);
+- ``controller.pt``: the controller's parameters (a list of tensors, `torch.save`);
+- ``trajectory.npz``: centre of mass and action per step of the best episode;
+- ``info.json``: the iteration and return that made it the best.
+
+`codesign eval RUN_DIR` rebuilds the run's parts from its ``config.yaml`` and replays these.
+Torch and trimesh are imported inside the functions that need them.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from codesign.errors import CodesignError
+from codesign.interfaces import Controller, DesignFields, Environment
+
+BEST = "best"
+DESIGN_FIELDS = ("occupancy", "stiffness", "muscle", "fiber")
+KEEP_THRESHOLD = 0.5
+
+
+def to_numpy(value: Any) -> np.ndarray:
+    if hasattr(value, "detach"):
+        value = value.detach().cpu().numpy()
+    return np.asarray(value, dtype=np.float64)
+
+
+@dataclass
+class EpisodeRecord:
+    episode_return: float
+    length: int
+    com: np.ndarray  # (T, 3) robot centre of mass after each step
+    actions: np.ndarray  # (T, K)
+
+
+def play(env: Environment, design: DesignFields | None, controller: Controller, seed: int | None = None
+         ) -> EpisodeRecord:
+    """One episode without gradients: reset with `design`, act until done or the horizon."""
+    import torch
+
+    with torch.no_grad():
+        observation = env.reset(design=design, seed=seed)
+        controller.reset()
+        total, coms, actions = 0.0, [], []
+        for t in range(env.horizon):
+            action = to_numpy(controller(observation, t))
+            result = env.step(action)
+            total += float(result.reward)
+            actions.append(action)
+            coms.append(to_numpy(result.info.get("com", np.full(3, np.nan))))
+            observation = result.observation
+            if result.done:
+                break
+    return EpisodeRecord(total, len(actions), np.array(coms).reshape(-1, 3), np.array(actions).reshape(len(actions), -1))
+
+
+def save_best(run_dir: Path, design: DesignFields, points: np.ndarray, controller: Controller,
+              record: EpisodeRecord | None, info: dict) -> None:
+    """Write the run's best design, controller and episode (replacing the previous best)."""
+    import torch
+
+    best = Path(run_dir) / BEST
+    best.mkdir(parents=True, exist_ok=True)
+    fields = {name: to_numpy(getattr(design, name)) for name in DESIGN_FIELDS}
+    np.savez_compressed(best / "design.npz", points=points, **fields)
+    write_ply(best / "design.ply", points, fields["occupancy"], fields["muscle"])
+    torch.save([p.detach().cpu() for p in controller.parameters()], best / "controller.pt")
+    if record is not None:
+        np.savez_compressed(best / "trajectory.npz", com=record.com, actions=record.actions,
+                            episode_return=record.episode_return)
+    (best / "info.json").write_text(json.dumps(info, indent=2, default=float) + "\n", encoding="utf-8")
+
+
+PALETTE = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
+                    [140, 86, 75], [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207]], dtype=np.uint8)
+"""Muscle group colours (matplotlib's tab10), repeated beyond ten groups."""
+
+
+def write_ply(path: Path, points: np.ndarray, occupancy: np.ndarray, muscle: np.ndarray) -> None:
+    """The kept particles as a point cloud, coloured by their strongest muscle (grey: none)."""
+    import trimesh
+
+    keep = occupancy.reshape(-1) >= KEEP_THRESHOLD
+    colors = np.full((int(keep.sum()), 4), 255, dtype=np.uint8)
+    colors[:, :3] = 160
+    if muscle.size:
+        active = np.abs(muscle[keep]).max(1) > 0
+        colors[active, :3] = PALETTE[np.abs(muscle[keep][active]).argmax(1) % len(PALETTE)]
+    trimesh.PointCloud(points[keep], colors=colors).export(path)
+
+
+def load_design(run_dir: Path) -> DesignFields:
+    path = Path(run_dir) / BEST / "design.npz"
+    if not path.is_file():
+        raise CodesignError(f"{run_dir} has no {BEST}/design.npz: the run saved no best design yet")
+    data = np.load(path)
+    return DesignFields(**{name: data[name] for name in DESIGN_FIELDS})
+
+
+def load_controller(run_dir: Path, controller: Controller) -> None:
+    """Copy the saved parameters into an already set-up controller of the same shape."""
+    import torch
+
+    path = Path(run_dir) / BEST / "controller.pt"
+    if not path.is_file():
+        raise CodesignError(f"{run_dir} has no {BEST}/controller.pt: the run saved no best controller yet")
+    saved = torch.load(path)
+    params = controller.parameters()
+    if [tuple(p.shape) for p in params] != [tuple(s.shape) for s in saved]:
+        raise CodesignError(f"{path} holds parameters of shapes {[tuple(s.shape) for s in saved]}, but the "
+                            f"run's controller has {[tuple(p.shape) for p in params]}")
+    with torch.no_grad():
+        for p, s in zip(params, saved):
+            p.copy_(s)

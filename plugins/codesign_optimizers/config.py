@@ -1,0 +1,49 @@
+"""Config schemas, kept apart from the implementations so validating a recipe imports no torch."""
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+MODES = ["control", "design", "both"]
+
+
+@dataclass
+class DiffPhysicsConfig:
+    optimize: str = field(default="both", metadata={"choices": MODES, "help": "which parameters to train"})
+    iterations: int = field(default=30, metadata={"ge": 1, "help": "gradient steps per restart"})
+    lr_control: float = field(default=0.01, metadata={"gt": 0, "help": "Adam learning rate of the controller"})
+    lr_design: float = field(default=0.01, metadata={"gt": 0, "help": "Adam learning rate of the design"})
+    clip_grad_norm: Optional[float] = field(default=None, metadata={
+        "gt": 0, "help": "clip each group's gradient norm to this (null: no clipping)"})
+    restarts: int = field(default=1, metadata={
+        "ge": 1, "help": "independent random initialisations, run one after the other; the best is kept"})
+    checkpoint_every: Optional[int] = field(default=None, metadata={
+        "ge": 1, "help": "substeps between stored states in the backward pass (null: memory-optimal)"})
+
+
+@dataclass
+class CMAESConfig:
+    optimize: str = field(default="control", metadata={"choices": MODES, "help": "which parameters to evolve"})
+    generations: int = field(default=20, metadata={"ge": 1})
+    population: int = field(default=8, metadata={"ge": 2, "help": "candidates per generation (CMA's popsize)"})
+    sigma0: float = field(default=0.1, metadata={"gt": 0, "help": "initial step size"})
+    lower: Optional[float] = field(default=None, metadata={"help": "lower bound on every parameter (null: none)"})
+    upper: Optional[float] = field(default=None, metadata={"help": "upper bound on every parameter (null: none)"})
+
+
+@dataclass
+class PPOConfig:
+    """The paper's PPO settings (appendix "Reinforcement Learning") as defaults."""
+
+    optimize: str = field(default="control", metadata={"choices": MODES, "help": "PPO trains control only"})
+    total_timesteps: int = field(default=100_000, metadata={"ge": 1})
+    timesteps_per_iteration: int = field(default=2048, metadata={"ge": 1, "help": "logged and checkpointed per"})
+    n_steps: int = field(default=2048, metadata={"ge": 2, "help": "rollout buffer size"})
+    batch_size: int = field(default=32, metadata={"ge": 2})
+    gae_lambda: float = field(default=0.95, metadata={"ge": 0, "le": 1})
+    gamma: float = field(default=0.98, metadata={"gt": 0, "le": 1})
+    n_epochs: int = field(default=20, metadata={"ge": 1})
+    ent_coef: float = field(default=0.001, metadata={"ge": 0})
+    learning_rate: float = field(default=1e-4, metadata={"gt": 0})
+    clip_range: float = field(default=0.2, metadata={"gt": 0})
+    policy: str = field(default="mlp", metadata={
+        "choices": ["mlp", "sine"], "help": "mlp: SB3's MLP policy; sine: the sine-basis controller's form"})

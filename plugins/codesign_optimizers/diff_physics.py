@@ -1,0 +1,97 @@
+"""Differentiable-physics optimisation: Adam through the simulator (SoftZoo appendix "Optimization")."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from codesign.artifacts import EpisodeRecord
+from codesign.errors import CodesignError, RecipeError
+from codesign.interfaces import Controller, Environment, Optimizer, Representation
+from codesign_optimizers.common import BestKeeper, parameter_groups
+from codesign_optimizers.config import DiffPhysicsConfig
+
+
+class DiffPhysics(Optimizer):
+    """One Adam step per iteration on the loss of a differentiable episode (minus its return).
+
+    Each parameter group (control, design) has its own learning rate and optional gradient
+    clipping. With `restarts` > 1 the parts are re-initialised from the run's generator after
+    every `iterations` steps (the paper's "several random seeds, keep the best"); the best
+    episode over all restarts is what `best/` keeps. A non-finite gradient stops the run with
+    an error naming the iteration and the group, never a silent zero.
+    """
+
+    maximize = {"loss": False}
+
+    def __init__(self, config: DiffPhysicsConfig) -> None:
+        self.config = config
+        self.iterations = config.iterations * config.restarts
+        self.iteration = 0
+
+    def setup(self, environment: Environment, representation: Representation, controller: Controller, *,
+              rng: np.random.Generator, run_dir: Path) -> None:
+        if not hasattr(environment, "differentiable_episode"):
+            raise RecipeError(f"invalid recipe: optimizer.name: diff_physics needs an environment with "
+                              f"differentiable episodes; {type(environment).__name__} has none")
+        self.environment, self.representation, self.controller, self.rng = environment, representation, controller, rng
+        self.groups = parameter_groups(self.config.optimize, representation, controller)
+        self.best = BestKeeper(environment, controller, run_dir)
+        self._new_adam()
+
+    def _new_adam(self) -> None:
+        lr = {"control": self.config.lr_control, "design": self.config.lr_design}
+        self.adam = torch.optim.Adam([{"params": params, "lr": lr[name], "name": name}
+                                      for name, params in self.groups.items()])
+
+    def _restart(self) -> None:
+        """Fresh initial parameters for the next restart (same shapes, so Adam's groups stay valid)."""
+        env = self.environment
+        self.representation.setup(env.design_space, self.rng)
+        self.controller.setup(env.action_dim, env.observation_dim, env.control_dt, self.rng)
+        self.groups = parameter_groups(self.config.optimize, self.representation, self.controller)
+        self._new_adam()
+
+    def step(self) -> dict[str, float]:
+        if self.iteration and self.iteration % self.config.iterations == 0:
+            self._restart()
+        design = self.representation()
+        episode = self.environment.differentiable_episode(design, self.controller, self.config.checkpoint_every)
+        self.adam.zero_grad()
+        episode.loss.backward()
+        metrics = {"loss": float(episode.loss), "episode_return": episode.episode_return,
+                   "restart": float(self.iteration // self.config.iterations),
+                   "simulated_steps": float(self.environment.horizon)}
+        for name, params in self.groups.items():
+            grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params]
+            norm = float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads])))
+            if not math.isfinite(norm):
+                raise CodesignError(f"diff_physics: non-finite gradient in the {name} group at iteration "
+                                    f"{self.iteration} (loss {float(episode.loss):.6g}); lower the learning "
+                                    f"rate or set optimizer.clip_grad_norm")
+            metrics[f"grad_norm_{name}"] = norm
+            if self.config.clip_grad_norm is not None:
+                torch.nn.utils.clip_grad_norm_(params, self.config.clip_grad_norm)
+        record = EpisodeRecord(episode.episode_return, self.environment.horizon, episode.com[1:], episode.actions)
+        self.best.offer(episode.episode_return, design, record, self.iteration)  # before the update changes them
+        metrics["best_return"] = self.best.best_return
+        self.adam.step()
+        self.iteration += 1
+        return metrics
+
+    def state_dict(self) -> dict:
+        return {"iteration": self.iteration, "adam": self.adam.state_dict(), "best_return": self.best.best_return,
+                "representation": [p.detach().clone() for p in self.representation.parameters()],
+                "controller": [p.detach().clone() for p in self.controller.parameters()]}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.iteration = state["iteration"]
+        with torch.no_grad():
+            for part, saved in ((self.representation, state["representation"]), (self.controller, state["controller"])):
+                for p, s in zip(part.parameters(), saved):
+                    p.copy_(s)
+        self.adam.load_state_dict(state["adam"])
+        self.best.best_return = state["best_return"]

@@ -1,0 +1,13 @@
+"""Registers this package's optimizers; imports nothing heavy (see codesign.hookspecs)."""
+
+from codesign.hookspecs import hookimpl
+from codesign.registry import PluginRegistrar
+
+
+@hookimpl
+def codesign_register(registry: PluginRegistrar) -> None:
+    registry.add("optimizer", "diff_physics", "codesign_optimizers.diff_physics:DiffPhysics",
+                 "codesign_optimizers.config:DiffPhysicsConfig",
+                 "Adam on controller and/or design parameters through differentiable episodes (SoftZoo).")
+    registry.add("optimizer", "cma_es", "codesign_optimizers.cma_es:CMAES", "codesign_optimizers.config:CMAESConfig",
+                 "CMA-ES (the cma library) on the flattened controller and/or design parameters.")
