@@ -627,11 +627,11 @@ class _Storage:
                                 v = ti.Vector.zero(float, 3)
                             else:
                                 v = vt * (1.0 + mu * vn / vt_norm)
-                for d in ti.static(range(3)):
-                    if I[d] < bc and v[d] < 0:
-                        v[d] = 0.0
-                    if I[d] > self.grid_shape[d] - 1 - bc and v[d] > 0:
-                        v[d] = 0.0
+                # walls: no outward velocity near the domain edge (branch-free: a component assigned
+                # in a branch becomes an uninitialised load in Taichi's reverse mode)
+                top = ti.Vector([self.grid_shape[0], self.grid_shape[1], self.grid_shape[2]]) - 1 - bc
+                blocked = ((I < bc) & (v < 0)) | ((I > top) & (v > 0))
+                v = ti.select(blocked, 0.0, v)
             self.grid_v_out[I] = v
 
     @ti.kernel

@@ -35,8 +35,10 @@ class PPOConfig:
     """The paper's PPO settings (appendix "Reinforcement Learning") as defaults."""
 
     optimize: str = field(default="control", metadata={"choices": MODES, "help": "PPO trains control only"})
-    total_timesteps: int = field(default=100_000, metadata={"ge": 1})
-    timesteps_per_iteration: int = field(default=2048, metadata={"ge": 1, "help": "logged and checkpointed per"})
+    total_timesteps: int = field(default=100_000, metadata={
+        "ge": 1, "help": "environment steps in all (SB3 rounds the last iteration up to whole rollouts)"})
+    timesteps_per_iteration: int = field(default=2048, metadata={
+        "ge": 1, "help": "environment steps per logged, checkpointed iteration; a multiple of n_steps"})
     n_steps: int = field(default=2048, metadata={"ge": 2, "help": "rollout buffer size"})
     batch_size: int = field(default=32, metadata={"ge": 2})
     gae_lambda: float = field(default=0.95, metadata={"ge": 0, "le": 1})
@@ -46,4 +48,5 @@ class PPOConfig:
     learning_rate: float = field(default=1e-4, metadata={"gt": 0})
     clip_range: float = field(default=0.2, metadata={"gt": 0})
     policy: str = field(default="mlp", metadata={
-        "choices": ["mlp", "sine"], "help": "mlp: SB3's MLP policy; sine: the sine-basis controller's form"})
+        "choices": ["mlp", "sine"],
+        "help": "mlp: needs the mlp controller (output: action); sine: needs the sine controller"})

@@ -11,3 +11,5 @@ def codesign_register(registry: PluginRegistrar) -> None:
                  "Adam on controller and/or design parameters through differentiable episodes (SoftZoo).")
     registry.add("optimizer", "cma_es", "codesign_optimizers.cma_es:CMAES", "codesign_optimizers.config:CMAESConfig",
                  "CMA-ES (the cma library) on the flattened controller and/or design parameters.")
+    registry.add("optimizer", "ppo", "codesign_optimizers.ppo:PPO", "codesign_optimizers.config:PPOConfig",
+                 "PPO (stable-baselines3) on the controller of a fixed design; the policy mean is the controller.")

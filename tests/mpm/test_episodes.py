@@ -115,7 +115,7 @@ def test_gymnasium_environments_pass_the_checker(env_id):
     gymnasium = pytest.importorskip("gymnasium")
     from gymnasium.utils.env_checker import check_env
 
-    env = gymnasium.make(f"codesign_mpm.gym:{env_id}", environment={"dx": 1 / 24, "horizon": 5,
+    env = gymnasium.make(f"codesign_mpm.gym:{env_id}", environment={"dx": 1 / 24, "horizon": 5, "terrain": {"height": 0.13},
                          "observation": {"muscle_centroids": True, "time": True}})
     try:
         check_env(env.unwrapped, skip_render_check=True)
