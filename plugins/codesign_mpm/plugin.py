@@ -67,6 +67,27 @@ def codesign_cli(app: typer.Typer) -> None:
         if export is not None:
             typer.echo(f"exported                {export}")
 
+    @app.command()
+    def render(
+        source: Path = typer.Argument(..., help="A run directory (its best design and controller are replayed "
+                                      "for one episode) or an .npz from `codesign simulate --export`."),
+        out: Optional[Path] = typer.Option(None, "--out", help="Video, .mp4 or .gif (default: RUN_DIR/best/"
+                                           "episode.mp4, or the .npz's name with .mp4; none if only --still)."),
+        still: Optional[Path] = typer.Option(None, "--still", help="Also (or only) a .png of the design at rest, "
+                                             "coloured by muscle group."),
+        camera: str = typer.Option("oblique", "--camera", help="side, top or oblique."),
+        fps: int = typer.Option(25, "--fps", min=1, help="Frames per second of the video."),
+        no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+    ) -> None:
+        """Render an episode headless to a video (robot red/blue by muscle activation) and/or a still."""
+        from codesign_mpm.render import CAMERAS
+        from codesign_mpm.render import render as render_files
+
+        if camera not in CAMERAS:
+            raise typer.BadParameter(f"--camera {camera!r}: choose from {', '.join(CAMERAS)}")
+        for path in render_files(source, out, still, camera, fps, progress=not no_progress):
+            typer.echo(str(path))
+
     bench = typer.Typer(help="Benchmarks that print JSON lines to compare run to run.", no_args_is_help=True)
     app.add_typer(bench, name="bench")
 

@@ -114,6 +114,12 @@ def simulate(scene: Scene, frames: int, export: Path | None = None, progress: bo
     report = SimulationReport(particles.n, scene.grid_shape, sim.timestep.substeps, sim.timestep.dt, frames,
                               build_time, first_frame_time, time.perf_counter() - started)
     if keep:
+        from codesign_mpm.terrain import height_map
+
+        # muscle, robot, actions (all zero here), dx and height_map are for `codesign render`
         np.savez_compressed(export, x=xs, v=vs, material=particles.material.astype(np.int32),
-                            body=particles.body.astype(np.int32), frame_dt=np.float64(scene.frame_dt))
+                            body=particles.body.astype(np.int32), frame_dt=np.float64(scene.frame_dt),
+                            muscle=particles.muscle.astype(np.float32), robot=particles.robot.astype(bool),
+                            actions=np.zeros((frames, particles.n_actuators), np.float32),
+                            dx=np.float64(scene.dx), height_map=height_map(scene).astype(np.float32))
     return report

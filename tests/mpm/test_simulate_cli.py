@@ -35,7 +35,7 @@ def test_export_holds_every_frame_and_the_particle_labels(tmp_path, cli):
     particles = build_particles(load_scene(scene_file))
     n = particles.n
     data = np.load(export)
-    assert set(data.files) == {"x", "v", "material", "body", "frame_dt"}
+    assert {"x", "v", "material", "body", "frame_dt", "muscle", "robot", "actions", "dx", "height_map"} <= set(data.files)
     assert data["x"].shape == data["v"].shape == (5, n, 3) and data["x"].dtype == np.float32
     np.testing.assert_allclose(data["x"][0], particles.x, atol=1e-6)
     np.testing.assert_array_equal(data["v"][0], 0.0)

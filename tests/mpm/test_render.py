@@ -1,0 +1,118 @@
+"""`codesign render`: videos of a run's best episode and of a `simulate --export`, and stills, all
+headless. Frames are read back and checked by colour: robot red/blue (muscle activation) or grey
+(passive), muscle-group colours in stills, and motion between frames."""
+import os
+import subprocess
+import sys
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+from codesign import plugins, runner
+from codesign.artifacts import PALETTE
+from codesign.recipe import resolve_recipe
+from codesign_mpm.render import render
+from codesign_mpm.scene import BodySpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec
+from codesign_mpm.simulate import simulate
+
+HORIZON = 5
+TINY = {
+    "name": "tiny-render", "seed": 0,
+    "environment": {"name": "ground", "dx": 1 / 24, "horizon": HORIZON, "terrain": {"height": 0.13}},
+    "representation": {"name": "particle"},
+    "controller": {"name": "sine"},
+    "optimizer": {"name": "cma_es", "generations": 1, "population": 2},
+}
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    """A real run with a best/ design and controller (about 10 s)."""
+    return runner.run(resolve_recipe(TINY), run_dir=tmp_path_factory.mktemp("render") / "run", progress=False)
+
+
+def frames_of(path) -> list[np.ndarray]:
+    return [np.asarray(f)[..., :3].astype(int) for f in imageio.get_reader(path)]
+
+
+def count(image: np.ndarray, mask) -> int:
+    r, g, b = image[..., 0], image[..., 1], image[..., 2]
+    return int(mask(r, g, b).sum())
+
+
+def reddish(r, g, b):
+    return (r > g + 60) & (r > b + 60)
+
+
+def bluish(r, g, b):
+    return (b > r + 60) & (b > g + 30)
+
+
+def grey(r, g, b):
+    return (abs(r - g) < 14) & (abs(g - b) < 14) & (r > 100) & (r < 200)
+
+
+def test_a_run_renders_to_mp4_with_activation_colours_and_motion(run_dir, tmp_path, cli, monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    out = tmp_path / "episode.mp4"
+    code, stdout, _ = cli("render", str(run_dir), "--out", str(out), "--camera", "side", "--fps", "10",
+                          "--no-progress")
+    assert code == 0 and str(out) in stdout and out.stat().st_size > 1000
+    frames = frames_of(out)
+    assert len(frames) == HORIZON + 1 and frames[0].shape == (480, 640, 3)
+    assert count(frames[0], grey) > 500  # at rest every muscle is passive
+    assert all(count(f, reddish) + count(f, bluish) > 200 for f in frames[1:])  # the sine gait acts
+    below_stamp = [f[40:] for f in frames]  # leave out the time stamp, which always changes
+    assert all(np.abs(a - b).sum() > 0 for a, b in zip(below_stamp, below_stamp[1:]))
+
+
+def test_the_still_shows_each_muscle_group_in_its_colour_and_replays_nothing(run_dir, tmp_path):
+    still = tmp_path / "design.png"
+    assert render(run_dir, still=still, camera="oblique") == [still]
+    assert not (run_dir / "best" / "episode.mp4").exists()
+    image = imageio.imread(still)[..., :3].astype(float)
+    direction = image / np.maximum(np.linalg.norm(image, axis=-1, keepdims=True), 1)
+    seen = 0
+    for color in PALETTE[:4].astype(float):  # the tiny robot has 2 x 2 x 1 muscle groups
+        close = np.linalg.norm(direction - color / np.linalg.norm(color), axis=-1) < 0.06
+        seen += int(close[60:-90].sum() > 100)  # away from the title and the legend
+    assert seen >= 3  # the oblique camera sees at least three of the four groups
+
+
+def test_an_export_renders_to_gif_in_a_process_without_display(tmp_path):
+    """`simulate --export` keeps what rendering needs; the render itself needs no Taichi or display."""
+    scene = Scene(size=[0.6, 0.45, 0.45], dx=1 / 24, terrain=TerrainSpec(kind="flat", height=0.13), bodies=[
+        BodySpec(name="robot", shape=ShapeSpec(kind="box", size=[0.15, 0.06, 0.06]), center=[0.3, 0.25, 0.22],
+                 muscles=MuscleSpec(groups=[2, 1, 1]), robot=True)])
+    export = tmp_path / "drop.npz"
+    simulate(scene, 4, export=export, progress=False)
+    data = np.load(export)
+    assert {"x", "v", "material", "body", "frame_dt", "muscle", "robot", "actions", "dx", "height_map"} <= set(data)
+    assert data["actions"].shape == (4, 2) and data["robot"].all()
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("DISPLAY", "WAYLAND_DISPLAY", "MPLBACKEND", plugins.EXPLICIT_ENV)}  # no test plugin
+    out = tmp_path / "drop.gif"
+    done = subprocess.run([sys.executable, "-m", "codesign", "render", str(export), "--out", str(out),
+                           "--no-progress"], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    frames = frames_of(out)
+    assert len(frames) == 5
+    assert all(count(f, grey) > 200 for f in frames)  # zero actions: a passive robot
+    assert np.abs(frames[-1][40:] - frames[0][40:]).sum() > 0  # it fell
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--camera", "front"], "--camera 'front': choose from side, top, oblique"),
+    (["--out", "x.avi"], "suffix '.avi' is not supported; choose from .mp4, .gif"),
+])
+def test_bad_options_name_the_value_and_the_choices(tmp_path, cli, args, message):
+    export = tmp_path / "x.npz"
+    np.savez(export, x=np.zeros((2, 3, 3), np.float32), material=np.zeros(3, np.int32))
+    code, _, err = cli("render", str(export), *args, "--no-progress")
+    assert code != 0 and message in " ".join(err.split())
+
+
+def test_a_path_that_is_neither_a_run_nor_an_export_is_named(tmp_path, cli):
+    code, _, err = cli("render", str(tmp_path / "nothing.txt"))
+    assert code == 1 and "nothing.txt" in err and "run directory" in err
