@@ -32,14 +32,15 @@ def test_sine_is_periodic_in_the_common_period_of_its_frequencies():
     assert not torch.allclose(controller(None, 0), controller(None, 25))
 
 
-def test_sine_matches_the_formula():
+def test_sine_matches_the_papers_formula():
+    """u = bound * tanh(sum_ij alpha_ij sin(omega_i t + phi_j) + beta_ij), a weight and bias per basis."""
     controller = sine(frequencies=[3.0], phases=2, bound=0.3, init_std=1.0, action_dim=2)
     with torch.no_grad():
-        controller.beta.copy_(torch.tensor([0.1, -0.2]))
+        controller.beta.copy_(torch.tensor([[[0.1, 0.05]], [[-0.2, 0.0]]]))
     t = 5 * 0.01
     alpha, beta = controller.alpha.detach().numpy(), controller.beta.detach().numpy()
     basis = np.array([[math.sin(3.0 * t), math.sin(3.0 * t + math.pi)]])  # (I=1, J=2)
-    expected = 0.3 * np.tanh((alpha * basis).sum(axis=(1, 2)) + beta)
+    expected = 0.3 * np.tanh((alpha * basis + beta).sum(axis=(1, 2)))
     np.testing.assert_allclose(controller(None, 5).detach().numpy(), expected, rtol=1e-5)
 
 
@@ -47,7 +48,7 @@ def test_sine_gradients_flow_to_its_parameters():
     controller = sine(init_std=0.1)
     alpha, beta = controller.parameters()
     assert alpha.requires_grad and beta.requires_grad
-    assert alpha.shape == (3, 2, 4) and beta.shape == (3,)
+    assert alpha.shape == beta.shape == (3, 2, 4)
     loss = sum(controller(None, t).sum() for t in range(10))
     loss.backward()
     assert alpha.grad is not None and alpha.grad.abs().sum() > 0

@@ -926,7 +926,7 @@ class Simulator:
 
     def _check_bound(self, actions: np.ndarray) -> None:
         worst = float(np.abs(actions).max(initial=0.0))
-        if not worst <= self.scene.max_action:
+        if not worst <= self.scene.max_action * (1 + 1e-6):  # float32 actions at the bound round up
             raise ValueError(f"action {worst:.4g} exceeds scene.max_action = {self.scene.max_action} (the time "
                              "step is sized for it); scale the actions or raise max_action")
 

@@ -39,7 +39,7 @@ class Episode:
 
     @property
     def episode_return(self) -> float:
-        return float(self.rewards.sum())
+        return self.rewards.sum().item()
 
 
 def _tensor(value, shape) -> torch.Tensor:

@@ -62,7 +62,7 @@ class DiffPhysics(Optimizer):
         episode = self.environment.differentiable_episode(design, self.controller, self.config.checkpoint_every)
         self.adam.zero_grad()
         episode.loss.backward()
-        metrics = {"loss": float(episode.loss), "episode_return": episode.episode_return,
+        metrics = {"loss": episode.loss.item(), "episode_return": episode.episode_return,
                    "restart": float(self.iteration // self.config.iterations),
                    "simulated_steps": float(self.environment.horizon)}
         for name, params in self.groups.items():
@@ -70,7 +70,7 @@ class DiffPhysics(Optimizer):
             norm = float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads])))
             if not math.isfinite(norm):
                 raise CodesignError(f"diff_physics: non-finite gradient in the {name} group at iteration "
-                                    f"{self.iteration} (loss {float(episode.loss):.6g}); lower the learning "
+                                    f"{self.iteration} (loss {episode.loss.item():.6g}); lower the learning "
                                     f"rate or set optimizer.clip_grad_norm")
             metrics[f"grad_norm_{name}"] = norm
             if self.config.clip_grad_norm is not None:

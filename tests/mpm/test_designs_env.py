@@ -2,7 +2,7 @@
 representation in every environment, and one end-to-end gradient per representation.
 
 Forward runs use dx = 1/32 in float32. The gradient checks share one float64 simulator (the ground
-scene of test_gradients.py, so its compiled kernels are reused) and feed each representation's
+scene of gradient_checks.py) and feed each representation's
 fields to it through the torch bridge without dropping particles: volume = base volume x
 occupancy keeps the particle layout whatever the design.
 """
@@ -178,7 +178,7 @@ def test_every_representation_runs_in_every_environment(environment):
 
 
 T = 3  # frames of the differentiable rollout
-MAX_FRAMES, SEGMENT = 12, 64  # as test_gradients.py: the same layout, so the same compiled kernels
+MAX_FRAMES, SEGMENT = 12, 64  # as gradient_checks.py: one layout, compiled once for all representations
 CASES = {"particle": {}, "voxel": {}, "implicit": {}, "diff_cppn": {},
          "sdf_lerp": dict(temperature=0.05, init_noise=0.3),  # a wider sigmoid: more particles feel the weights
          "wasserstein": dict(resolution=12, init_noise=0.3)}

@@ -1,5 +1,5 @@
 """The eight environment presets at test resolution (dx = 1/32): construction, forward, and
-how robots interact with each ground cover (their gradients: test_gradients.py)."""
+how robots interact with each ground cover (their gradients: test_gradients_*.py)."""
 import numpy as np
 import pytest
 

@@ -1,4 +1,6 @@
-"""Gradients through every material against central finite differences (float64).
+"""Gradient checks through every material against central finite differences (float64), shared
+by the test_gradients_*.py files (one per group of environments, so pytest-xdist compiles
+their backward kernels in parallel).
 
 For the elastic robot alone (ground) and on each ground cover (sand, clay, mud, snow, water),
 everything a rollout differentiates (actions, volume, Young's modulus, muscle membership,
@@ -18,7 +20,6 @@ import pytest
 from codesign_mpm.engine import Simulator
 from test_environments import make_env, random_actions  # same folder: pytest puts it on sys.path
 
-pytestmark = pytest.mark.slow
 
 COVERS = {"ground": None, "ice": None, "desert": "sand", "clay": "clay", "wetland": "mud", "snow": "snow",
           "shallow_water": "water", "ocean": "water"}
@@ -34,8 +35,7 @@ def assert_matches(analytic: float, numeric: float, what) -> None:
     assert analytic == pytest.approx(numeric, rel=1e-4, abs=1e-10), what
 
 
-@pytest.mark.parametrize("name", list(COVERS))
-def test_every_input_gradient_matches_finite_differences(name):
+def check_every_input(name: str) -> None:
     env = make_env(name, dtype="float64")
     sim = Simulator(env.scene, env.particles, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=SEGMENT)
     p = env.particles
@@ -94,8 +94,7 @@ STATES = {
 }
 
 
-@pytest.mark.parametrize("name", ["desert", "clay", "wetland", "snow", "shallow_water"])
-def test_stress_jacobian_of_each_cover_matches_finite_differences(name):
+def check_stress_jacobian(name: str) -> None:
     """d loss / d F0 after one substep from rest goes through the cover's stress and return mapping."""
     env = make_env(name, dtype="float64")
     scene = replace(env.scene, gravity=[0.0, 0.0, 0.0], frame_dt=1e-5)  # one substep per frame
