@@ -21,7 +21,8 @@ import platform
 import random
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime
 from importlib import metadata
@@ -107,12 +108,7 @@ def run(recipe: ResolvedRecipe, *, run_dir: str | Path | None = None, progress: 
 def resume(run_dir: str | Path, *, progress: bool = True) -> Path:
     """Continue a run from its last completed iteration, appending to its metrics."""
     directory = Path(run_dir)
-    config_path = directory / CONFIG_FILE
-    if not config_path.is_file():
-        raise CodesignError(f"{directory} is not a run directory (no {CONFIG_FILE})")
-    data = OmegaConf.to_container(OmegaConf.load(config_path), resolve=False)
-    assert isinstance(data, dict)
-    recipe = resolve_recipe(data)
+    data, recipe = load_run_data(directory)
     checkpoint_path = directory / CHECKPOINT_FILE
     checkpoint = None
     if checkpoint_path.is_file():
@@ -196,29 +192,44 @@ def progress_report(run_dir: Path) -> str:
             f"last {returns[-1][1]:.4g}{where}")
 
 
-def evaluate_best(run_dir: str | Path, episodes: int = 1) -> list[float]:
-    """Rebuild a run's parts from its config and replay its best design and controller."""
-    from codesign.artifacts import load_controller, load_design, play
-
+def load_run_data(run_dir: str | Path) -> tuple[dict, ResolvedRecipe]:
+    """A run directory's recipe as stored (unresolved interpolations kept) and resolved."""
     directory = Path(run_dir)
     config_path = directory / CONFIG_FILE
     if not config_path.is_file():
         raise CodesignError(f"{directory} is not a run directory (no {CONFIG_FILE})")
     data = OmegaConf.to_container(OmegaConf.load(config_path), resolve=False)
     assert isinstance(data, dict)
-    recipe = resolve_recipe(data)
+    return data, resolve_recipe(data)
+
+
+@contextmanager
+def best_parts(run_dir: str | Path) -> Iterator[tuple[Parts, Any, np.random.Generator]]:
+    """The run's parts rebuilt from its config, set up as the run set them up, holding its best
+    controller; yields (parts, best design, the run's generator) and closes the environment."""
+    from codesign.artifacts import load_controller, load_design
+
+    _, recipe = load_run_data(run_dir)
     parts = build_parts(recipe)
     try:
         rng = seed_everything(recipe.seed)
         env = parts.environment
         parts.representation.setup(env.design_space, rng)
         parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
-        design = load_design(directory)
-        load_controller(directory, parts.controller)
-        return [play(env, design, parts.controller, seed=int(rng.integers(2**31))).episode_return
-                for _ in range(episodes)]
+        design = load_design(Path(run_dir))
+        load_controller(Path(run_dir), parts.controller)
+        yield parts, design, rng
     finally:
         parts.environment.close()
+
+
+def evaluate_best(run_dir: str | Path, episodes: int = 1) -> list[float]:
+    """Replay a run's best design and controller for `episodes` episodes; their returns."""
+    from codesign.artifacts import play
+
+    with best_parts(run_dir) as (parts, design, rng):
+        return [play(parts.environment, design, parts.controller, seed=int(rng.integers(2**31))).episode_return
+                for _ in range(episodes)]
 
 
 def _make_tracker(recipe: ResolvedRecipe, data: dict, run_dir: Path) -> Tracker:

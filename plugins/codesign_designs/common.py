@@ -109,3 +109,14 @@ def linear_layer(rng: np.random.Generator, fan_in: int, fan_out: int, scale: flo
     w = rng.normal(0.0, scale / np.sqrt(fan_in), (fan_in, fan_out))
     b = rng.normal(0.0, scale / np.sqrt(fan_in), fan_out) if random_bias else np.zeros(fan_out)
     return (torch.tensor(w, dtype=dtype, requires_grad=True), torch.tensor(b, dtype=dtype, requires_grad=True))
+
+
+@torch.no_grad()
+def centre_output_head(weight: torch.Tensor, bias: torch.Tensor, hidden: torch.Tensor, muscle_scale: float,
+                       occupancy_logit: float) -> None:
+    """Initialise an output layer of (occupancy, stiffness, K muscle logits): muscle weights scaled
+    by `muscle_scale` and each muscle's logit centred over the workspace (else one muscle wins
+    everywhere at the start), occupancy starting at `occupancy_logit`."""
+    weight[:, 2:] *= muscle_scale
+    bias[2:] = -(hidden @ weight[:, 2:]).mean(0)
+    bias[0] = occupancy_logit

@@ -6,8 +6,8 @@ import numpy as np
 import torch
 
 from codesign.interfaces import DesignFields, DesignSpace, Representation
-from codesign_designs.common import (check_fiber, check_stiffness_ratios, coordinate_features, fixed_fibers,
-                                     linear_layer, stiffness_map)
+from codesign_designs.common import (centre_output_head, check_fiber, check_stiffness_ratios, coordinate_features,
+                                     fixed_fibers, linear_layer, stiffness_map)
 from codesign_designs.config import DiffCPPNConfig
 from codesign_designs.implicit import N_FEATURES
 
@@ -65,10 +65,7 @@ class DiffCPPNRepresentation(Representation):
             self._groups.append((groups, torch.argsort(order)))
         self.features = torch.tensor(coordinate_features(space), dtype=dtype)
         with torch.no_grad():
-            w, b = self.head
-            w[:, 2:] *= cfg.muscle_scale
-            b[2:] = -(self._hidden() @ w[:, 2:]).mean(0)  # each muscle's logit starts centred over the workspace
-            b[0] = cfg.init_occupancy_logit
+            centre_output_head(*self.head, self._hidden(), cfg.muscle_scale, cfg.init_occupancy_logit)
         self._fiber = torch.tensor(fixed_fibers(space, cfg.fiber), dtype=dtype)
         self._default_stiffness = space.default_stiffness
 

@@ -6,8 +6,8 @@ import numpy as np
 import torch
 
 from codesign.interfaces import DesignFields, DesignSpace, Representation
-from codesign_designs.common import (check_fiber, check_stiffness_ratios, coordinate_features, fixed_fibers,
-                                     linear_layer, stiffness_map)
+from codesign_designs.common import (centre_output_head, check_fiber, check_stiffness_ratios, coordinate_features,
+                                     fixed_fibers, linear_layer, stiffness_map)
 from codesign_designs.config import ImplicitConfig
 
 ACTIVATION = {"tanh": torch.tanh, "sin": torch.sin, "softplus": torch.nn.functional.softplus}
@@ -41,10 +41,7 @@ class ImplicitRepresentation(Representation):
         self.layers = [linear_layer(rng, a, b, cfg.init_scale, dtype) for a, b in zip(widths[:-1], widths[1:])]
         self.features = torch.tensor(coordinate_features(space), dtype=dtype)
         with torch.no_grad():
-            w, b = self.layers[-1]
-            w[:, 2:] *= cfg.muscle_scale
-            b[2:] = -(self._hidden() @ w[:, 2:]).mean(0)  # each muscle's logit starts centred over the workspace
-            b[0] = cfg.init_occupancy_logit
+            centre_output_head(*self.layers[-1], self._hidden(), cfg.muscle_scale, cfg.init_occupancy_logit)
         self._fiber = torch.tensor(fixed_fibers(space, cfg.fiber), dtype=dtype)
         self._default_stiffness = space.default_stiffness
 

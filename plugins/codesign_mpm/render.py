@@ -139,32 +139,11 @@ def record_episode(env: LocomotionEnv, design: DesignFields | None, controller: 
 
 
 def record_run(run_dir: str | Path, steps: int | None = None) -> Recording:
-    """Rebuild a run's parts from its config.yaml (as `runner.evaluate_best` does) and record one
-    episode of its best design and controller."""
-    from omegaconf import OmegaConf
-
+    """Record one episode of a run's best design and controller (its parts rebuilt from config.yaml)."""
     from codesign import runner
-    from codesign.artifacts import load_controller, load_design
-    from codesign.recipe import resolve_recipe
 
-    directory = Path(run_dir)
-    config_path = directory / runner.CONFIG_FILE
-    if not config_path.is_file():
-        raise CodesignError(f"{directory} is not a run directory (no {runner.CONFIG_FILE})")
-    data = OmegaConf.to_container(OmegaConf.load(config_path), resolve=False)
-    assert isinstance(data, dict)
-    recipe = resolve_recipe(data)
-    parts = runner.build_parts(recipe)
-    try:
-        rng = runner.seed_everything(recipe.seed)
-        env = parts.environment
-        parts.representation.setup(env.design_space, rng)
-        parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
-        design = load_design(directory)
-        load_controller(directory, parts.controller)
-        return record_episode(env, design, parts.controller, steps)  # type: ignore[arg-type]
-    finally:
-        parts.environment.close()
+    with runner.best_parts(run_dir) as (parts, design, _):
+        return record_episode(parts.environment, design, parts.controller, steps)  # type: ignore[arg-type]
 
 
 def load_input(path: str | Path, steps: int | None = None) -> Recording:
