@@ -107,3 +107,12 @@ def test_trajectory_and_mlp_controllers_respect_their_bound_and_seed():
             u = a(obs, t).detach().numpy()
             assert np.abs(u).max() <= 0.2 and np.abs(u).max() > 0.1  # saturates towards the bound
             np.testing.assert_array_equal(u, b(obs, t).detach().numpy())
+
+
+def test_evaluate_writes_each_episodes_return_and_trajectory(tmp_path):
+    recipe = {**TOY_CMA, "optimizer": {"name": "evaluate", "episodes": 2}}
+    run_dir = runner.run(resolve_recipe(recipe), run_dir=tmp_path / "run", progress=False)
+    for i, row in enumerate(metrics(run_dir)):
+        data = np.load(run_dir / f"trajectory-{i}.npz")
+        assert data["actions"].shape == (4, 2) and data["com"].shape == (4, 3)
+        assert float(data["episode_return"]) == pytest.approx(row["episode_return"])

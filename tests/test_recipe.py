@@ -255,3 +255,11 @@ def test_invalid_yaml_is_a_recipe_error(tmp_path, registry):
     write(tmp_path / "bad.yaml", "seed: [1, 2\n")
     with pytest.raises(RecipeError, match="cannot read recipe"):
         load_recipe(tmp_path / "bad.yaml", registry=registry)
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).resolve().parents[1] / "recipes").glob("*.yaml")),
+                         ids=lambda p: p.name)
+def test_every_shipped_recipe_validates(path):
+    """Each recipe in recipes/ composes and names existing components with valid settings."""
+    recipe = load_recipe(path)
+    assert set(recipe.sections) == {"environment", "representation", "controller", "optimizer"}
