@@ -94,8 +94,9 @@ def time_step(scene: Scene, particles: Particles) -> TimeStep:
         _check_muscle_stability(scene, particles, actuated)
     added = np.where(actuated, muscle_modulus(scene.muscle_model, particles.muscle_ratio * particles.youngs_modulus,
                                               scene.max_action), 0.0)
-    kinds = set(zip(particles.material.tolist(), particles.youngs_modulus.tolist(), particles.poisson_ratio.tolist(),
-                    particles.density.tolist(), added.tolist(), map(tuple, particles.params.tolist())))
+    table = np.column_stack([particles.material, particles.youngs_modulus, particles.poisson_ratio,
+                             particles.density, added, particles.params])
+    kinds = [(int(row[0]), *row[1:5], tuple(row[5:])) for row in np.unique(table, axis=0)]  # distinct materials
     speeds = [model_wave_speed(m, e, nu, rho, extra, params) for m, e, nu, rho, extra, params in kinds]
     vmax = float(np.linalg.norm(particles.v, axis=1).max(initial=0.0))
     stable = scene.cfl * scene.dx / (max(speeds) + vmax)
@@ -898,7 +899,8 @@ class Simulator:
     def restore(self, snapshot: tuple) -> None:
         """Return to a `snapshot`: its design and initial state, with their time step."""
         particles, self._initial_CF, self._initial_jp = snapshot
-        self._use(particles)
+        if particles is not self.particles:  # same design: keep its time step (no CFL pass over the particles)
+            self._use(particles)
         self.reset()
 
     def stress(self, action: np.ndarray | None = None) -> np.ndarray:
