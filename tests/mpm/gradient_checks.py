@@ -97,7 +97,7 @@ STATES = {
 
 
 def check_stress_jacobian(name: str) -> None:
-    """d loss / d F0 after one substep from rest goes through the cover's stress and return mapping."""
+    """d loss / d F0 after one substep goes through the cover's stress and return mapping."""
     env = make_env(name, dtype="float64")
     scene = replace(env.scene, gravity=[0.0, 0.0, 0.0], frame_dt=1e-5)  # one substep per frame
     sim = Simulator(scene, env.particles, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=SEGMENT)
@@ -112,14 +112,15 @@ def check_stress_jacobian(name: str) -> None:
                 F_cover = CONFINED  # sand at F = I sits on its apex (no cohesion): not differentiable there
             F0 = np.tile(np.eye(3), (p.n, 1, 1))
             F0[cover] = F_cover
-            # a particle of the cover's top layer, away from the robot and the walls: its 27 grid nodes
-            # lie above the terrain, whose contact (like friction) has a kink at zero velocity,
-            # which is where an at-rest state sits
+            # a particle of the cover's top layer, away from the robot and the walls
             top = cover[p.x[cover, 1] >= p.x[cover, 1].max() - 1e-9]
             probe = top[np.argmin(np.abs(p.x[top][:, [0, 2]] - [0.7, 0.25]).sum(1))]
 
             def loss(F) -> float:
-                sim.set_initial_state(F=F)
+                # everything drifts up slowly: terrain contact (and its friction) has a kink at zero
+                # normal velocity, where a state at rest would sit (measured: FD then averages the two
+                # one-sided slopes, 0.2-0.9% off the adjoint's; with the drift they agree to 1e-9)
+                sim.set_initial_state(F=F, v=np.tile([0.0, 0.05, 0.0], (p.n, 1)))
                 out = sim.rollout(np.zeros((1, env.action_dim)))
                 _, _, _, F_end = sim.particles_state()
                 return float((wv * out.v).sum() + (wF * F_end).sum())
