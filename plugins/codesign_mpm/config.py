@@ -40,6 +40,9 @@ class CoverConfig:
     bulk_modulus: float = field(default=1.0e5, metadata={"gt": 0, "help": "water: K (sound speed sqrt(K/rho))"})
     viscosity: float = field(default=0.0, metadata={"ge": 0, "help": "water, mud: dynamic viscosity"})
     particles_per_cell: int = field(default=8, metadata={"choices": [1, 8, 27, 64]})
+    settled: bool = field(default=True, metadata={
+        "help": "start loaded by its own weight (geostatic F, codesign_mpm.settle); false: stress-free, it "
+                "settles during the first frames"})
 
 
 @dataclass(frozen=True)

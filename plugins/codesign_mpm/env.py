@@ -26,6 +26,7 @@ from codesign_mpm.engine import Simulator
 from codesign_mpm.observations import Observer
 from codesign_mpm.sampling import Particles, build_particles
 from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
+from codesign_mpm.settle import settled_deformation
 from codesign_mpm.tasks import TASKS, RobotFrame, Task, TaskContext
 from codesign_mpm.terrain import height_map
 
@@ -184,6 +185,9 @@ class LocomotionEnv(Environment):
         self.observer = Observer(config.observation, self.task, k, config.horizon, config.dx, height_map(self.scene))
         self.observation_dim = self.observer.dim
         self.particles: Particles = _concat(self.base_particles, self.cover_particles)
+        cover = preset.cover if config.cover is None else config.cover
+        self._cover_F = (settled_deformation(self.scene, everything)[~everything.robot] if cover.settled
+                         else np.tile(np.eye(3), (self.cover_particles.n, 1, 1)))
         self.sim: Simulator | None = None
         self._grad_sim: Simulator | None = None
         self.t = 0
@@ -222,6 +226,7 @@ class LocomotionEnv(Environment):
             self.sim = Simulator(self.scene, particles, capacity=self.capacity)
         else:
             self.sim.reset(particles)
+        self.sim.set_initial_state(F=self.initial_deformation(particles))
         self.t = 0
         self._start_task(particles)
         return self._observe()[0]
@@ -230,6 +235,11 @@ class LocomotionEnv(Environment):
     def capacity(self) -> int:
         """Particles of the full workspace plus the cover: every design's simulators share one layout."""
         return self.base_particles.n + self.cover_particles.n
+
+    def initial_deformation(self, particles: Particles) -> np.ndarray:
+        """(N, 3, 3) initial F of a design's particles: identity for the robot, the cover's settled state."""
+        robot = np.tile(np.eye(3), (int(particles.robot.sum()), 1, 1))
+        return np.concatenate([robot, self._cover_F])
 
     def _start_task(self, particles: Particles) -> None:
         robot = particles.robot
@@ -275,6 +285,7 @@ class LocomotionEnv(Environment):
                                        capacity=self.capacity)
         else:
             self._grad_sim.reset(particles)
+        self._grad_sim.set_initial_state(F=self.initial_deformation(particles))
         return self._grad_sim
 
     def close(self) -> None:

@@ -83,8 +83,8 @@ def run_episode(env: LocomotionEnv, design: DesignFields, controller: Controller
         com = com_x.detach().numpy()
     else:
         state = (torch.as_tensor(particles.x, dtype=DTYPE), torch.as_tensor(particles.v, dtype=DTYPE),
-                 torch.zeros(particles.n, 3, 3, dtype=DTYPE), torch.eye(3, dtype=DTYPE).expand(particles.n, 3, 3),
-                 torch.ones(particles.n, dtype=DTYPE))
+                 torch.zeros(particles.n, 3, 3, dtype=DTYPE),
+                 torch.as_tensor(env.initial_deformation(particles), dtype=DTYPE), torch.ones(particles.n, dtype=DTYPE))
         cover_x = None
         rewards, coms, actions = [], [(weights @ state[0][:n]).detach().numpy()], []
         robot_muscle = muscle[:n]
