@@ -4,7 +4,8 @@ their backward kernels in parallel).
 
 For the elastic robot alone (ground) and on each ground cover (sand, clay, mud, snow, water),
 everything a rollout differentiates (actions, volume, Young's modulus, muscle membership,
-fibre, x0, v0) is checked over enough frames that the cover carries the robot's weight.
+fibre, x0, v0) is checked from the environment's settled start (cover and robot at rest, the cover
+carrying its own weight) over enough frames that the cover carries the robot's.
 Each plastic cover's stress Jacobian is then checked on its own: one substep from rest with
 the cover held at a chosen deformation (F = I or confined, where eigenvalues coincide;
 uniaxial compression; a generic F), differentiated with respect to the initial F.
@@ -43,6 +44,7 @@ def check_every_input(name: str) -> None:
     rng = np.random.default_rng(2)
     actions = random_actions(env, T, seed=1)
     w_com, wx = rng.normal(size=(T + 1, 3)), rng.normal(size=(p.n, 3)) / p.n
+    sim.set_initial_state(F=env.initial_deformation(p))  # the environment's settled start: the cover at rest
     start = sim.snapshot()
 
     def loss(a=actions) -> float:
