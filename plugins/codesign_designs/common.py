@@ -9,7 +9,7 @@ import torch
 
 from codesign.errors import RecipeError
 from codesign.geometry import grid_partition
-from codesign.interfaces import DesignSpace
+from codesign.interfaces import DesignFields, DesignSpace
 
 
 def near_cubic_grid(k: int) -> tuple[int, int, int]:
@@ -120,3 +120,13 @@ def centre_output_head(weight: torch.Tensor, bias: torch.Tensor, hidden: torch.T
     weight[:, 2:] *= muscle_scale
     bias[2:] = -(hidden @ weight[:, 2:]).mean(0)
     bias[0] = occupancy_logit
+
+
+def fields_from_logits(out: torch.Tensor, default_stiffness: float, config, fiber: torch.Tensor) -> DesignFields:
+    """Design fields from an (N, 2 + K) output of logits: occupancy, stiffness, muscles."""
+    return DesignFields(
+        occupancy=torch.sigmoid(out[:, 0]),
+        stiffness=stiffness_map(out[:, 1], default_stiffness, config.min_stiffness_ratio, config.max_stiffness_ratio),
+        muscle=torch.softmax(out[:, 2:], dim=1),
+        fiber=fiber,
+    )

@@ -7,7 +7,7 @@ import torch
 
 from codesign.interfaces import DesignFields, DesignSpace, Representation
 from codesign_designs.common import (centre_output_head, check_fiber, check_stiffness_ratios, coordinate_features,
-                                     fixed_fibers, linear_layer, stiffness_map)
+                                     fields_from_logits, fixed_fibers, linear_layer)
 from codesign_designs.config import ImplicitConfig
 
 ACTIVATION = {"tanh": torch.tanh, "sin": torch.sin, "softplus": torch.nn.functional.softplus}
@@ -58,12 +58,4 @@ class ImplicitRepresentation(Representation):
     def __call__(self) -> DesignFields:
         if not self.layers:
             raise RuntimeError("ImplicitRepresentation.setup() must be called before use")
-        cfg = self.config
-        out = self._hidden() @ self.layers[-1][0] + self.layers[-1][1]
-        return DesignFields(
-            occupancy=torch.sigmoid(out[:, 0]),
-            stiffness=stiffness_map(out[:, 1], self._default_stiffness, cfg.min_stiffness_ratio,
-                                    cfg.max_stiffness_ratio),
-            muscle=torch.softmax(out[:, 2:], dim=1),
-            fiber=self._fiber,
-        )
+        return fields_from_logits(self._hidden() @ self.layers[-1][0] + self.layers[-1][1], self._default_stiffness, self.config, self._fiber)
