@@ -23,6 +23,16 @@ def _run(sim: Simulator, checkpoint_every, actions: np.ndarray, design: dict, x0
     return sim.rollout(actions, checkpoint_every=checkpoint_every)
 
 
+def _replay_if_stale(ctx, start: State | None = None) -> None:
+    """Make the simulator's last rollout this node's again (restore its design and initial state
+    and recompute) if anything ran on the simulator since: backward() replays the last one."""
+    sim = ctx.sim
+    if sim.rollouts != ctx.rollout_id or not sim.rollout_is_current:
+        sim.restore(ctx.snapshot)
+        sim.rollout(ctx.actions, checkpoint_every=ctx.checkpoint_every, start=start)
+        ctx.rollout_id = sim.rollouts
+
+
 class _Rollout(torch.autograd.Function):
     @staticmethod
     def forward(ctx, sim: Simulator, checkpoint_every, actions, *inputs):
@@ -44,12 +54,8 @@ class _Rollout(torch.autograd.Function):
         def host(t):
             return None if t is None else t.detach().cpu().numpy().astype(np.float64)
 
-        sim = ctx.sim
-        if sim.rollouts != ctx.rollout_id or not sim.rollout_is_current:  # state changed since: replay ours
-            sim.restore(ctx.snapshot)
-            sim.rollout(ctx.actions, checkpoint_every=ctx.checkpoint_every)
-            ctx.rollout_id = sim.rollouts
-        grads = sim.backward(com_x=host(g_com_x), com_v=host(g_com_v), x=host(g_x), v=host(g_v))
+        _replay_if_stale(ctx)
+        grads = ctx.sim.backward(com_x=host(g_com_x), com_v=host(g_com_v), x=host(g_x), v=host(g_v))
 
         def dev(a):
             return torch.as_tensor(a, dtype=ctx.dtype, device=ctx.device)
@@ -86,10 +92,10 @@ class _Frame(torch.autograd.Function):
     @staticmethod
     def forward(ctx, sim: Simulator, checkpoint_every, action, x, v, C, F, Jp, *design):
         ctx.sim, ctx.checkpoint_every = sim, checkpoint_every
-        ctx.action = action.detach().cpu().numpy()[None]
+        ctx.actions = action.detach().cpu().numpy()[None]
         ctx.start = State(*(t.detach().cpu().numpy() for t in (x, v, C, F, Jp)))
         ctx.snapshot = sim.snapshot()
-        out = sim.rollout(ctx.action, checkpoint_every=checkpoint_every, start=ctx.start)
+        out = sim.rollout(ctx.actions, checkpoint_every=checkpoint_every, start=ctx.start)
         ctx.rollout_id = sim.rollouts
         ctx.dtype, ctx.device = x.dtype, x.device
         return tuple(torch.as_tensor(getattr(out.final, name), dtype=x.dtype, device=x.device)
@@ -97,14 +103,10 @@ class _Frame(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *grad_state):
-        sim = ctx.sim
-        if sim.rollouts != ctx.rollout_id or not sim.rollout_is_current:  # later steps ran: replay this one
-            sim.restore(ctx.snapshot)
-            sim.rollout(ctx.action, checkpoint_every=ctx.checkpoint_every, start=ctx.start)
-            ctx.rollout_id = sim.rollouts
+        _replay_if_stale(ctx, ctx.start)  # later steps ran on the simulator
         seeds = {name: None if g is None else g.detach().cpu().numpy().astype(np.float64)
                  for name, g in zip(STATE_FIELDS, grad_state)}
-        grads = sim.backward(**seeds)
+        grads = ctx.sim.backward(**seeds)
 
         def dev(a):
             return torch.as_tensor(a, dtype=ctx.dtype, device=ctx.device)
@@ -117,10 +119,7 @@ class _Frame(torch.autograd.Function):
 def step_frame(sim: Simulator, state: tuple[torch.Tensor, ...], action: torch.Tensor,
                design: tuple[torch.Tensor, ...], checkpoint_every: int | None = None) -> tuple[torch.Tensor, ...]:
     """Differentiable control step: state (x, v, C, F, Jp) -> the state one frame later, holding
-    `action`, for the design (volume, youngs_modulus, muscle, fiber), which is applied to `sim`
-    if it differs from its current one."""
-    current = sim.particles
-    host = [t.detach().cpu().numpy() for t in design]
-    if not all(np.array_equal(h, getattr(current, name)) for h, name in zip(host, DESIGN_INPUTS)):
-        sim.set_design(**dict(zip(DESIGN_INPUTS, host)))
+    `action`, for the design (volume, youngs_modulus, muscle, fiber), applied to `sim` (a no-op
+    when it is already its design)."""
+    sim.set_design(**{name: t.detach().cpu().numpy() for name, t in zip(DESIGN_INPUTS, design)})
     return _Frame.apply(sim, checkpoint_every, action, *state, *design)

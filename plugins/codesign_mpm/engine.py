@@ -864,7 +864,8 @@ class Simulator:
             raise ValueError("Jp is state only in scenes with snow")
         given = {name: np.asarray(value, dtype=np.float64).reshape(self.n, 3)
                  for name, value in (("x", x), ("v", v)) if value is not None}
-        self._use(replace(self.particles, **given))
+        if given:  # only positions and velocities enter the particles (and the time step)
+            self._use(replace(self.particles, **given))
         if Jp is not None:
             self._initial_jp = np.asarray(Jp, dtype=np.float64).reshape(self.n).copy()
         if C is not None or F is not None:
@@ -876,7 +877,7 @@ class Simulator:
     def set_design(self, volume=None, youngs_modulus=None, muscle=None, fiber=None) -> None:
         """Overwrite per-particle design fields (numpy) and reset to the initial state.
 
-        The time step is recomputed (a stiffer design gets a smaller one). Fibres may have any
+        The time step is recomputed if anything changed (a stiffer design gets a smaller one). Fibres may have any
         non-zero length: the engine uses their directions, and `backward` returns the gradient
         with respect to the vectors given.
         """
@@ -888,8 +889,10 @@ class Simulator:
                 value = np.asarray(value, dtype=np.float64)
                 if value.shape != getattr(p, name).shape:
                     raise ValueError(f"{name} must have shape {getattr(p, name).shape}, got {value.shape}")
-                given[name] = value
-        self._use(replace(p, **given))
+                if not np.array_equal(value, getattr(p, name)):
+                    given[name] = value
+        if given:  # an unchanged design keeps its particles and time step
+            self._use(replace(p, **given))
         self.reset()
 
     def snapshot(self) -> tuple:
