@@ -36,6 +36,13 @@ def _occupancy_logit():
         "help": "initial occupancy logit (the networks: an output bias); sigmoid(3) = 0.95 keeps every particle"})
 
 
+def _muscle_scale():
+    """The networks (implicit, diff_cppn): how much larger their muscle logits' weights start."""
+    return field(default=3.0, metadata={
+        "ge": 0, "help": "the muscle logits' weights start this much larger, so the first design has distinct "
+                         "muscle regions rather than one muscle everywhere"})
+
+
 def _min_stiffness_ratio():
     return field(default=0.5, metadata={"gt": 0, "help": "stiffness at logit -inf, as a multiple of the default"})
 
@@ -80,9 +87,7 @@ class ImplicitConfig:
     activation: str = field(default="tanh", metadata={"choices": ["tanh", "sin", "softplus"]})
     init_scale: float = field(default=1.0, metadata={
         "gt": 0, "help": "weights start as N(0, init_scale^2 / fan_in); larger gives more varied first designs"})
-    muscle_scale: float = field(default=3.0, metadata={
-        "ge": 0, "help": "the muscle logits' weights start this much larger, so the first design has distinct "
-                         "muscle regions rather than one muscle everywhere"})
+    muscle_scale: float = _muscle_scale()
     init_occupancy_logit: float = _occupancy_logit()
     min_stiffness_ratio: float = _min_stiffness_ratio()
     max_stiffness_ratio: float = _max_stiffness_ratio()
@@ -102,9 +107,7 @@ class DiffCPPNConfig:
         "ge": 0, "help": "initial |gate logit|; a connection's weight is w sigmoid(gate), the softened NEAT edge"})
     weight_scale: float = field(default=2.0, metadata={
         "gt": 0, "help": "weights start as N(0, weight_scale^2 / fan_in); CPPN patterns need a scale above 1"})
-    muscle_scale: float = field(default=3.0, metadata={
-        "ge": 0, "help": "the muscle logits' weights start this much larger, so the first design has distinct "
-                         "muscle regions rather than one muscle everywhere"})
+    muscle_scale: float = _muscle_scale()
     init_occupancy_logit: float = _occupancy_logit()
     min_stiffness_ratio: float = _min_stiffness_ratio()
     max_stiffness_ratio: float = _max_stiffness_ratio()
