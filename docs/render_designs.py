@@ -22,7 +22,7 @@ from codesign.bodies import ANIMALS, FISH_FAMILY, library_body  # noqa: E402
 from codesign.plugins import get_registry  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "images" / "designs"
-REPRESENTATIONS = ["particle", "voxel", "implicit", "diff_cppn", "sdf_lerp", "wasserstein"]
+REPRESENTATIONS = ["particle", "voxel", "implicit", "diff_cppn", "sdf_lerp", "wasserstein", "neat_cppn"]
 COLORS = plt.get_cmap("tab10")
 
 
@@ -78,8 +78,8 @@ def render_representations() -> list[tuple[str, int]]:
         counts.append((name, sum(t.numel() for t in representation.parameters())))
         with torch.no_grad():
             design = representation()
-        kept = design.occupancy.numpy() >= 0.5
-        muscle = design.muscle.numpy()[kept]
+        kept = np.asarray(design.occupancy) >= 0.5
+        muscle = np.asarray(design.muscle)[kept]
         groups = np.where(muscle.max(1) > 1e-6, muscle.argmax(1), -1)
         figure(f"{name}: {kept.sum()} of {len(kept)} particles", space.points[kept], groups,
                OUT / f"representation_{name}.png", size=4.0)

@@ -90,4 +90,3 @@ def test_inverted_stiffness_ratios_are_a_user_error():
 def test_shipped_recipes_validate(recipe):
     resolved = load_recipe(recipe)
     assert resolved.sections["environment"].name in ("ground", "ice")
-    assert resolved.sections["representation"].name == "particle"

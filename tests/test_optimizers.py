@@ -17,6 +17,8 @@ TOY_CMA = {
     "controller": {"name": "trajectory", "steps": 4, "init_std": 1.0},
     "optimizer": {"name": "cma_es", "generations": 12, "population": 8, "sigma0": 0.2},
 }
+TOY_NEAT = {**TOY_CMA, "name": "toy-neat", "representation": {"name": "neat_cppn"},
+            "optimizer": {"name": "cppn_neat", "generations": 8, "population": 8, "sigma0": 0.2}}
 
 
 def metrics(run_dir) -> list[dict]:
@@ -44,12 +46,12 @@ def test_eval_replays_the_best_design_and_controller(tmp_path, cli):
     assert max(returns) > info["episode_return"] - 0.1
 
 
-@pytest.mark.parametrize("recipe", [TOY_CMA, {**TOY_CMA, "optimizer": {"name": "evaluate", "episodes": 6}}],
-                         ids=["cma_es", "evaluate"])
+@pytest.mark.parametrize("recipe", [TOY_CMA, TOY_NEAT, {**TOY_CMA, "optimizer": {"name": "evaluate", "episodes": 6}}],
+                         ids=["cma_es", "cppn_neat", "evaluate"])
 def test_resumed_run_ends_with_the_numbers_of_an_uninterrupted_one(tmp_path, recipe):
     whole = runner.run(resolve_recipe(recipe), run_dir=tmp_path / "whole", progress=False)
     half = dict(recipe, optimizer={**recipe["optimizer"]})
-    key = "generations" if recipe["optimizer"]["name"] == "cma_es" else "episodes"
+    key = "episodes" if recipe["optimizer"]["name"] == "evaluate" else "generations"
     half["optimizer"][key] = 3
     part = runner.run(resolve_recipe(half), run_dir=tmp_path / "part", progress=False)
     config = part / "config.yaml"
@@ -66,6 +68,8 @@ def test_resumed_run_ends_with_the_numbers_of_an_uninterrupted_one(tmp_path, rec
     ({"name": "cma_es", "population": 1}, r"optimizer.population: 1 is out of range; must be >= 2"),
     ({"name": "cma_es", "optimize": "sideways"}, r"optimizer.optimize: 'sideways' is not a valid choice"),
     ({"name": "cma_es", "lower": 1.0, "upper": -1.0}, r"optimizer.lower/upper"),
+    ({"name": "cppn_neat", "optimize": "control"}, r"optimizer.optimize: 'control' is not a valid choice"),
+    ({"name": "cppn_neat", "elitism": 10}, r"optimizer.elitism: 10 must be below optimizer.population \(10\)"),
 ])
 def test_bad_optimizer_settings_fail_with_the_key_and_what_is_allowed(tmp_path, optimizer, pattern):
     with pytest.raises(RecipeError, match=pattern):
@@ -77,6 +81,8 @@ def test_bad_optimizer_settings_fail_with_the_key_and_what_is_allowed(tmp_path, 
     ({"name": "cma_es", "optimize": "design"}, r"trains the representation, but representation "
                                                r"'ConstantRepresentation' has no trainable parameters"),
     ({"name": "diff_physics"}, r"diff_physics needs an environment with differentiable episodes"),
+    ({"name": "cppn_neat"}, r"representation.name: cppn_neat evolves NEAT genomes and needs the neat_cppn "
+                            r"representation; 'ConstantRepresentation' has no genome"),
 ])
 def test_a_mode_the_parts_cannot_do_fails_before_any_episode(tmp_path, optimizer, pattern):
     with pytest.raises(RecipeError, match=pattern):

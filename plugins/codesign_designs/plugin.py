@@ -39,6 +39,8 @@ def codesign_register(registry: PluginRegistrar) -> None:
                                             "lerped stiffness and muscles, Procrustes-averaged fibres."),
         ("wasserstein", "wasserstein", "Wasserstein", "Debiased Sinkhorn barycenter of design primitives' "
                                                       "occupancy; the rest as sdf_lerp."),
+        ("neat_cppn", "neat_cppn", "NeatCPPN", "A NEAT genome's CPPN (neat-python), evolved by the cppn_neat "
+                                               "optimizer; the largest connected body is kept."),
     ):
         registry.add("representation", name, f"codesign_designs.{module}:{cls}Representation",
                      f"codesign_designs.config:{cls}Config", description)

@@ -50,3 +50,25 @@ class PPOConfig:
     policy: str = field(default="mlp", metadata={
         "choices": ["mlp", "sine"],
         "help": "mlp: needs the mlp controller (output: action); sine: needs the sine controller"})
+
+
+@dataclass
+class CPPNNEATConfig:
+    """The paper's ES co-design baseline (appendix "Evolution Strategy") as defaults: population 10,
+    100 generations, CMA-ES on the controller with initial step 0.1. The genome's settings are
+    the neat_cppn representation's; these are NEAT's population settings."""
+
+    optimize: str = field(default="both", metadata={
+        "choices": ["design", "both"], "help": "design: NEAT alone (the controller stays); both: with CMA-ES on "
+                                               "the controller, one population shared (genome i plays candidate i)"})
+    generations: int = field(default=100, metadata={"ge": 1})
+    population: int = field(default=10, metadata={"ge": 2, "help": "NEAT's pop_size, also CMA-ES's popsize"})
+    sigma0: float = field(default=0.1, metadata={"gt": 0, "help": "CMA-ES initial step size on the controller"})
+    compatibility_threshold: float = field(default=3.0, metadata={
+        "gt": 0, "help": "genomic distance under which two genomes share a species"})
+    elitism: int = field(default=1, metadata={"ge": 0, "help": "best genomes of each species kept unchanged"})
+    survival_threshold: float = field(default=0.2, metadata={
+        "gt": 0, "le": 1, "help": "fraction of each species allowed to reproduce"})
+    max_stagnation: int = field(default=15, metadata={
+        "ge": 1, "help": "generations a species may go without improving before it is removed"})
+    species_elitism: int = field(default=1, metadata={"ge": 0, "help": "species protected from stagnation"})

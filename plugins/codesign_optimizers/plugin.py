@@ -13,3 +13,6 @@ def codesign_register(registry: PluginRegistrar) -> None:
                  "CMA-ES (the cma library) on the flattened controller and/or design parameters.")
     registry.add("optimizer", "ppo", "codesign_optimizers.ppo:PPO", "codesign_optimizers.config:PPOConfig",
                  "PPO (stable-baselines3) on the controller of a fixed design; the policy mean is the controller.")
+    registry.add("optimizer", "cppn_neat", "codesign_optimizers.cppn_neat:CPPNNEAT",
+                 "codesign_optimizers.config:CPPNNEATConfig",
+                 "CPPN-NEAT (neat-python) on the neat_cppn design, CMA-ES on the controller, one population.")

@@ -39,3 +39,24 @@ def test_co_design_beats_control_alone_and_design_alone_with_equal_budgets(seed,
         trained = {"control": {"control"}, "design": {"design"}, "both": {"control", "design"}}[mode]
         assert {key[len("grad_norm_"):] for key in rows[0] if key.startswith("grad_norm_")} == trained
     assert results["both"][0] > max(results["control"][0], results["design"][0]) + 0.01, results
+
+
+def test_a_resumed_diff_physics_run_ends_with_the_numbers_of_an_uninterrupted_one(tmp_path):
+    """Adam's moments, the parameters and the best so far come back from the checkpoint."""
+    recipe = {"name": "crawler", "seed": 0,
+              "environment": {"name": "ground", "dx": 1 / 32, "horizon": 4, "dtype": "float64",
+                              "terrain": {"height": 0.1, "friction": 0.5}, "robot": {"size": [0.16, 0.08, 0.08]}},
+              "representation": {"name": "particle"}, "controller": {"name": "sine", "init_std": 1.0},
+              "optimizer": {"name": "diff_physics", "iterations": 4, "lr_control": 0.1, "lr_design": 0.1}}
+    whole = runner.run(resolve_recipe(recipe), run_dir=tmp_path / "whole", progress=False)
+    part = runner.run(resolve_recipe({**recipe, "optimizer": {**recipe["optimizer"], "iterations": 2}}),
+                      run_dir=tmp_path / "part", progress=False)
+    config = part / "config.yaml"
+    config.write_text(config.read_text().replace("iterations: 2", "iterations: 4"))  # the run goes on
+    runner.resume(part, progress=False)
+
+    def rows(run_dir):
+        return [{k: v for k, v in json.loads(line).items() if k != "wall_time"}
+                for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+    assert len(rows(whole)) == 4 and rows(part) == rows(whole)
