@@ -31,11 +31,11 @@ from typing import Any
 
 import numpy as np
 from omegaconf import OmegaConf
-from tqdm import tqdm
 
 from codesign.errors import CodesignError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
 from codesign.plots import CURVE_FILE, learning_curve
+from codesign.progress import progress_bar
 from codesign.plugins import get_plugin_manager, get_registry
 from codesign.recipe import ResolvedRecipe, resolve_recipe
 from codesign.tracking import JsonlTracker, MultiTracker, Tracker, WandbTracker
@@ -142,9 +142,8 @@ def _execute(
         if checkpoint:
             optimizer.load_state_dict(checkpoint["optimizer"])
             rng.bit_generator.state = checkpoint["rng"]
-        with tqdm(
-            total=optimizer.iterations, initial=completed, desc=recipe.name, disable=not progress, file=sys.stderr
-        ) as bar:
+        with progress_bar(total=optimizer.iterations, initial=completed, desc=recipe.name, unit="iter",
+                          show=progress) as bar:
             for iteration in range(completed, optimizer.iterations):
                 row = {**optimizer.step(), "iteration": iteration, "wall_time": wall_time()}
                 tracker.log(row, step=iteration)
