@@ -39,6 +39,16 @@ class TrackingConfig:
 
 
 @dataclass
+class RenderConfig:
+    """Rendering the best episode when a run ends, through whichever plugin implements
+    ``codesign_render_run`` (codesign_mpm for its environments)."""
+
+    enabled: bool = field(default=False, metadata={"help": "write best/episode.mp4 when the run ends"})
+    camera: str = field(default="oblique", metadata={"choices": ["side", "top", "oblique"]})
+    fps: int = field(default=25, metadata={"ge": 1})
+
+
+@dataclass
 class RecipeSettings:
     """The top-level keys of a recipe other than the four component sections."""
 
@@ -46,6 +56,7 @@ class RecipeSettings:
     seed: int = field(default=0, metadata={"ge": 0, "lt": 2**32})
     run_dir: str | None = field(default=None, metadata={"help": "default: runs/<name>-<YYYYmmdd-HHMMSS>"})
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,9 @@ class Tracker(ABC):
     def log_image(self, key: str, path: Path) -> None:
         """Record a picture the run made (a plot); ignored by default (the file is in the run dir)."""
 
+    def log_video(self, key: str, path: Path) -> None:
+        """Record a video the run made (its best episode); ignored by default (the file is in the run dir)."""
+
     def close(self) -> None:
         """Flush and release; called once, also when the run fails."""
 
@@ -79,6 +82,11 @@ class WandbTracker(Tracker):
 
         self._run.log({key: wandb.Image(str(path))})
 
+    def log_video(self, key: str, path: Path) -> None:
+        import wandb
+
+        self._run.log({key: wandb.Video(str(path))})
+
     def close(self) -> None:
         self._run.finish()
 
@@ -100,6 +108,10 @@ class MultiTracker(Tracker):
     def log_image(self, key: str, path: Path) -> None:
         for tracker in self.trackers:
             tracker.log_image(key, path)
+
+    def log_video(self, key: str, path: Path) -> None:
+        for tracker in self.trackers:
+            tracker.log_video(key, path)
 
     def close(self) -> None:
         for tracker in self.trackers:

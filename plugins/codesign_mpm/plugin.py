@@ -38,6 +38,19 @@ def codesign_register(registry: PluginRegistrar) -> None:
 
 
 @hookimpl
+def codesign_render_run(run_dir: Path, camera: str, fps: int, progress: bool) -> Path | None:
+    """`render.enabled: true` in a recipe: its best episode to best/episode.mp4 (MPM environments only)."""
+    from codesign.runner import load_run_data
+
+    _, recipe = load_run_data(run_dir)
+    if recipe.sections["environment"].name not in PRESETS:
+        return None
+    from codesign_mpm.render import render as render_files
+
+    return render_files(run_dir, camera=camera, fps=fps, progress=progress)[0]
+
+
+@hookimpl
 def codesign_cli(app: typer.Typer) -> None:
     import typer  # already loaded by the CLI
 
