@@ -83,7 +83,7 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
             None, "--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else a local instance)."
         ),
         print_wandb_config: bool = typer.Option(
-            False, "--print-wandb-config", help="Print the sweep as a W&B sweep config (for `wandb sweep`), run nothing."
+            False, "--print-wandb-config", help="Print the sweep as a W&B sweep config (`wandb sweep`); run nothing."
         ),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
     ) -> None:

@@ -94,7 +94,8 @@ def test_a_2x2_grid_with_2_seeds_makes_8_runs_in_one_wandb_group_and_a_summary_o
     means = [float(r["mean"]) for r in rows]
     assert means == sorted(means, reverse=True)  # best first (maximize)
     markdown = (directory / "summary.md").read_text()
-    assert markdown.count("\n| ") == 2 + 4 and "| controller.bound | environment.target_range | mean | std | n |" in markdown
+    assert markdown.count("\n| ") == 2 + 4  # header, rule, 4 configurations
+    assert "| controller.bound | environment.target_range | mean | std | n |" in markdown
     assert "| controller.bound |" in err  # the table is shown when the sweep ends
     assert (directory / "learning_curves.png").stat().st_size > 0
 
