@@ -105,9 +105,7 @@ class Plan:
 
     def run_data(self, configuration: Mapping[str, Any], seed: int, run_dir: Path) -> dict:
         """The recipe of one run: the base with the configuration and seed applied, in the sweep's W&B group."""
-        data = self.base
-        for key, value in {**configuration, SEED: seed}.items():
-            data = merge_recipes(data, _nested(key, value))
+        data = _apply(self.base, {**configuration, SEED: seed})
         tracking = {**data["tracking"], "wandb": data["tracking"]["wandb_mode"] != "disabled", "group": self.name}
         return {**data, "name": f"{self.name}-{run_dir.name}", "run_dir": str(run_dir), "tracking": tracking}
 
@@ -218,11 +216,8 @@ def _probe(name: str, base: dict, dimensions: list[Dimension], seeds: tuple[int,
     problems: list[str] = []
     for combo in combos or [{}]:
         for seed in seeds:
-            data = base
-            for key, value in {**combo, SEED: seed}.items():
-                data = merge_recipes(data, _nested(key, value))
             try:
-                resolve_recipe(data)
+                resolve_recipe(_apply(base, {**combo, SEED: seed}))
             except RecipeError as exc:
                 setting = ", ".join(f"{k}={v!r}" for k, v in {**combo, SEED: seed}.items())
                 problems.append(f"sweep.parameters: the run with {setting} is invalid: "
@@ -231,10 +226,13 @@ def _probe(name: str, base: dict, dimensions: list[Dimension], seeds: tuple[int,
     return problems
 
 
-def _nested(key: str, value: Any) -> dict:
-    for part in reversed(key.split(".")[1:]):
-        value = {part: value}
-    return {key.split(".")[0]: value}
+def _apply(data: dict, values: Mapping[str, Any]) -> dict:
+    """`data` with each dotted key set to its value, merged as a `key=value` override would be."""
+    for key, value in values.items():
+        for part in reversed(key.split(".")):
+            value = {part: value}
+        data = merge_recipes(data, value)
+    return data
 
 
 # --- running ------------------------------------------------------------------------------------
