@@ -25,6 +25,7 @@ import dataclasses
 import itertools
 import json
 import math
+import os
 import shutil
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -297,7 +298,9 @@ class LocalExecutor:
 class RayExecutor:
     """Runs each run as a Ray task (one CPU each) on the cluster at `address` (None: ``RAY_ADDRESS``,
     else a local instance); an already initialised Ray is used as it is. The sweep directory must
-    be on a filesystem that every node sees (run directories are written there)."""
+    be on a filesystem that every node sees (run directories are written there). Started here, the
+    job's workers get this process's ``CODESIGN_*`` and ``WANDB_*`` variables (which plugins load,
+    W&B's mode and directories), which workers on other nodes would not inherit."""
 
     def __init__(self, address: str | None) -> None:
         try:
@@ -305,7 +308,8 @@ class RayExecutor:
         except ImportError:
             raise CodesignError("the ray backend needs Ray: pip install 'codesign[ray]'") from None
         if not ray.is_initialized():
-            ray.init(address=address)
+            env_vars = {k: v for k, v in os.environ.items() if k.startswith(("CODESIGN_", "WANDB_"))}
+            ray.init(address=address, runtime_env={"env_vars": env_vars})
         self._ray = ray
         self._task = ray.remote(num_cpus=1)(execute)
         self.slots = max(1, int(ray.cluster_resources().get("CPU", 1)))
