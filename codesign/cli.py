@@ -1,6 +1,6 @@
 """The ``codesign`` command line.
 
-Core commands are ``run``, ``show`` and ``plugins``; plugins add their own
+Core commands are ``run``, ``sweep``, ``eval``, ``show`` and ``plugins``; plugins add their own
 through the ``codesign_cli`` hook. Plugins are loaded before the command line
 is parsed (their commands must exist by then), so ``--disable-plugin`` is read
 from the arguments ahead of time. Heavy modules are imported inside commands
@@ -70,6 +70,40 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
         report = runner.progress_report(directory)
         if report:
             _stderr.print(report, markup=False, highlight=False, soft_wrap=True)
+        typer.echo(str(directory))
+
+    @app.command()
+    def sweep(
+        recipe: str = typer.Argument(..., help="Recipe file with a sweep: section, or a name in recipes/."),
+        overrides: Optional[list[str]] = typer.Argument(None, help="key=value overrides, e.g. sweep.trials=4."),
+        sweep_dir: Optional[Path] = typer.Option(None, "--sweep-dir", help="Where to write the sweep."),
+        resume: bool = typer.Option(False, "--resume", help="Continue the sweep in --sweep-dir."),
+        backend: Optional[str] = typer.Option(None, "--backend", help="local or ray (default: sweep.backend)."),
+        ray_address: Optional[str] = typer.Option(
+            None, "--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else a local instance)."
+        ),
+        print_wandb_config: bool = typer.Option(
+            False, "--print-wandb-config", help="Print the sweep as a W&B sweep config (`wandb sweep`); run nothing."
+        ),
+        no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+    ) -> None:
+        """Run every configuration x seed of a recipe's sweep: section and print the sweep directory."""
+        from codesign import sweep as sweeps
+        from codesign.recipe import load_recipe
+
+        resolved = load_recipe(recipe, overrides or [])
+        if print_wandb_config:
+            import yaml
+
+            config = sweeps.wandb_sweep_config(resolved, recipe, overrides or [])
+            typer.echo(yaml.safe_dump(config, sort_keys=False), nl=False)
+            return
+        if backend not in (None, "local", "ray"):
+            raise CodesignError(f"--backend {backend!r}: choose from local, ray")
+        directory = sweeps.run_sweep(resolved, sweep_dir=sweep_dir, resume=resume, backend=backend,
+                                     ray_address=ray_address, progress=not no_progress)
+        _stderr.print((directory / sweeps.SUMMARY_MD).read_text(encoding="utf-8"), markup=False, highlight=False,
+                      soft_wrap=True)
         typer.echo(str(directory))
 
     @app.command("eval")

@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING
 import pluggy
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     import typer
 
     from codesign.registry import PluginRegistrar
@@ -41,4 +43,13 @@ def codesign_seed(seed: int) -> None:
 
     Called by the runner after it has seeded Python, numpy and (if imported)
     torch, and before any component's ``setup``.
+    """
+
+
+@hookspec(firstresult=True)
+def codesign_render_run(run_dir: Path, camera: str, fps: int, progress: bool) -> Path | None:
+    """Render the best episode of the run in ``run_dir`` to ``run_dir/best/episode.mp4``; return it.
+
+    Called by the runner at the end of a run whose recipe says ``render.enabled: true``. Return
+    None when this plugin cannot render the run's environment; the first path returned wins.
     """

@@ -39,6 +39,35 @@ class TrackingConfig:
 
 
 @dataclass
+class RenderConfig:
+    """Rendering the best episode when a run ends, through whichever plugin implements
+    ``codesign_render_run`` (codesign_mpm for its environments)."""
+
+    enabled: bool = field(default=False, metadata={"help": "write best/episode.mp4 when the run ends"})
+    camera: str = field(default="oblique", metadata={"choices": ["side", "top", "oblique"]})
+    fps: int = field(default=25, metadata={"ge": 1})
+
+
+@dataclass
+class SweepMetric:
+    name: str = field(default="best.episode_return", metadata={"help": "a key of the runs' summary.json, dotted"})
+    goal: str = field(default="maximize", metadata={"choices": ["maximize", "minimize"]})
+
+
+@dataclass
+class SweepConfig:
+    """A sweep in W&B's sweep-config form (method, metric, parameters) plus where trials run;
+    ``codesign sweep`` reads it (see codesign.sweep and docs/sweeps.md), ``codesign run`` ignores it."""
+
+    method: str = field(metadata={"choices": ["grid", "random", "bayes"]})
+    parameters: dict[str, Any] = field(metadata={"help": "dotted recipe key -> values / value / distribution"})
+    metric: SweepMetric = field(default_factory=SweepMetric)
+    trials: int | None = field(default=None, metadata={"ge": 1, "help": "configurations to try (grid: all)"})
+    seed: int = field(default=0, metadata={"ge": 0, "lt": 2**32, "help": "seeds the sampler"})
+    backend: str = field(default="local", metadata={"choices": ["local", "ray"]})
+
+
+@dataclass
 class RecipeSettings:
     """The top-level keys of a recipe other than the four component sections."""
 
@@ -46,6 +75,8 @@ class RecipeSettings:
     seed: int = field(default=0, metadata={"ge": 0, "lt": 2**32})
     run_dir: str | None = field(default=None, metadata={"help": "default: runs/<name>-<YYYYmmdd-HHMMSS>"})
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    sweep: SweepConfig | None = None
 
 
 @dataclass(frozen=True)

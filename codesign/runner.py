@@ -8,7 +8,8 @@ A run directory holds:
 - ``checkpoint.pkl``: optimizer state and RNG state after the last completed
   iteration, from which :func:`resume` continues;
 - ``learning_curve.png``: the episode return against iteration and wall time;
-- ``best/``: what the optimizer found (see :mod:`codesign.artifacts`).
+- ``best/``: what the optimizer found (see :mod:`codesign.artifacts`), and ``best/episode.mp4``
+  when the recipe says ``render.enabled: true``.
 """
 
 from __future__ import annotations
@@ -31,11 +32,11 @@ from typing import Any
 
 import numpy as np
 from omegaconf import OmegaConf
-from tqdm import tqdm
 
 from codesign.errors import CodesignError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
 from codesign.plots import CURVE_FILE, learning_curve
+from codesign.progress import progress_bar
 from codesign.plugins import get_plugin_manager, get_registry
 from codesign.recipe import ResolvedRecipe, resolve_recipe
 from codesign.tracking import JsonlTracker, MultiTracker, Tracker, WandbTracker
@@ -131,6 +132,7 @@ def _execute(
     parts: Parts | None = None
     tracker: Tracker | None = None
     status, error = "failed", None
+    env_closed = False
     try:
         tracker = _make_tracker(recipe, data, run_dir)
         parts = build_parts(recipe)
@@ -142,9 +144,8 @@ def _execute(
         if checkpoint:
             optimizer.load_state_dict(checkpoint["optimizer"])
             rng.bit_generator.state = checkpoint["rng"]
-        with tqdm(
-            total=optimizer.iterations, initial=completed, desc=recipe.name, disable=not progress, file=sys.stderr
-        ) as bar:
+        with progress_bar(total=optimizer.iterations, initial=completed, desc=recipe.name, unit="iter",
+                          show=progress) as bar:
             for iteration in range(completed, optimizer.iterations):
                 row = {**optimizer.step(), "iteration": iteration, "wall_time": wall_time()}
                 tracker.log(row, step=iteration)
@@ -159,6 +160,10 @@ def _execute(
                     },
                 )
                 bar.update(1)
+        if recipe.settings.render.enabled:
+            env.close()  # the replay builds its own environment from config.yaml
+            env_closed = True
+            tracker.log_video("best_episode", render_best(run_dir, recipe, progress))
         status = "completed"
     except BaseException as exc:
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
@@ -174,9 +179,22 @@ def _execute(
                 tracker.log_image("learning_curve", curve)
             tracker.summary(summary)
             tracker.close()
-        if parts is not None:
+        if parts is not None and not env_closed:
             parts.environment.close()
     return run_dir
+
+
+def render_best(run_dir: Path, recipe: ResolvedRecipe, progress: bool) -> Path:
+    """Render the run's best episode through the plugin that can (core knows no renderer)."""
+    render = recipe.settings.render
+    video = get_plugin_manager().hook.codesign_render_run(
+        run_dir=run_dir, camera=render.camera, fps=render.fps, progress=progress
+    )
+    if video is None:
+        environment = recipe.sections["environment"].name
+        raise CodesignError(f"render.enabled: no plugin renders environment '{environment}' "
+                            f"(codesign_mpm renders its own); set render.enabled=false")
+    return Path(video)
 
 
 def progress_report(run_dir: Path) -> str:

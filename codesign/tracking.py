@@ -27,6 +27,12 @@ class Tracker(ABC):
     def log_image(self, key: str, path: Path) -> None:
         """Record a picture the run made (a plot); ignored by default (the file is in the run dir)."""
 
+    def log_video(self, key: str, path: Path) -> None:
+        """Record a video the run made (its best episode); ignored by default (the file is in the run dir)."""
+
+    def log_table(self, key: str, columns: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
+        """Record a table (a sweep's summary); ignored by default (the file is in the sweep dir)."""
+
     def close(self) -> None:
         """Flush and release; called once, also when the run fails."""
 
@@ -60,12 +66,21 @@ class WandbTracker(Tracker):
     """Logs to a W&B run stored under ``run_dir`` (offline by default)."""
 
     def __init__(
-        self, run_dir: Path, *, mode: str, project: str, group: str | None, name: str, config: Mapping[str, Any]
+        self,
+        run_dir: Path,
+        *,
+        mode: str,
+        project: str,
+        group: str | None,
+        name: str,
+        config: Mapping[str, Any],
+        job_type: str | None = None,
     ) -> None:
         import wandb
 
         self._run = wandb.init(
-            mode=mode, dir=str(run_dir), project=project, group=group, name=name, config=dict(config)
+            mode=mode, dir=str(run_dir), project=project, group=group, name=name, config=dict(config),
+            job_type=job_type,
         )
 
     def log(self, metrics: Mapping[str, Any], step: int) -> None:
@@ -78,6 +93,16 @@ class WandbTracker(Tracker):
         import wandb
 
         self._run.log({key: wandb.Image(str(path))})
+
+    def log_video(self, key: str, path: Path) -> None:
+        import wandb
+
+        self._run.log({key: wandb.Video(str(path))})
+
+    def log_table(self, key: str, columns: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
+        import wandb
+
+        self._run.log({key: wandb.Table(columns=list(columns), data=[list(r) for r in rows])})
 
     def close(self) -> None:
         self._run.finish()
@@ -100,6 +125,10 @@ class MultiTracker(Tracker):
     def log_image(self, key: str, path: Path) -> None:
         for tracker in self.trackers:
             tracker.log_image(key, path)
+
+    def log_video(self, key: str, path: Path) -> None:
+        for tracker in self.trackers:
+            tracker.log_video(key, path)
 
     def close(self) -> None:
         for tracker in self.trackers:

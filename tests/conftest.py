@@ -34,6 +34,21 @@ def toy_recipe() -> dict:
 
 
 @pytest.fixture
+def wandb_offline(tmp_path, monkeypatch):
+    """W&B in offline mode, quiet, with its config, cache and data kept inside the test's tmp_path."""
+    for var, value in {
+        "WANDB_SILENT": "true",
+        "WANDB_DISABLE_GIT": "true",
+        "WANDB_CONFIG_DIR": str(tmp_path / "wandb-config"),
+        "WANDB_CACHE_DIR": str(tmp_path / "wandb-cache"),
+        "WANDB_DATA_DIR": str(tmp_path / "wandb-data"),
+    }.items():
+        monkeypatch.setenv(var, value)
+    monkeypatch.delenv("WANDB_API_KEY", raising=False)
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+
+
+@pytest.fixture
 def cli(capsys):
     """Run the codesign CLI in-process: cli("run", ...) -> (exit code, stdout, stderr)."""
 

@@ -5,7 +5,7 @@ import sys
 
 from codesign.plugins import EXPLICIT_ENV
 
-HEAVY = ("taichi", "torch", "wandb")
+HEAVY = ("taichi", "torch", "wandb", "optuna", "ray")
 
 
 def run_python(code: str) -> list[str]:
@@ -18,7 +18,8 @@ def run_python(code: str) -> list[str]:
 def test_core_modules_and_plugin_loading_do_not_import_heavy_packages():
     code = (
         "import json, sys\n"
-        "import codesign, codesign.cli, codesign.recipe, codesign.runner, codesign.tracking\n"
+        "import codesign, codesign.cli, codesign.recipe, codesign.runner, codesign.tracking, codesign.sweep\n"
+        "import codesign.progress, codesign.plots\n"
         "from codesign.plugins import get_registry\n"
         "get_registry()\n"
         f"print(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))\n"

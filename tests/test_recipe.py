@@ -6,6 +6,7 @@ import pytest
 from codesign import RecipeError, recipe
 from codesign.recipe import load_recipe, resolve_recipe
 from codesign.registry import Registry
+from codesign.sweep import plan_sweep
 
 
 @dataclass
@@ -81,7 +82,7 @@ def test_int_is_accepted_where_float_is_declared(registry):
 def test_unknown_top_level_key(registry):
     message = error_of(registry, {**base_data(), "sed": 3})
     assert "sed: unknown key; did you mean 'seed'?" in message
-    assert "allowed: name, seed, run_dir, tracking, environment" in message
+    assert "allowed: name, seed, run_dir, tracking, render, sweep, environment" in message
 
 
 def test_unknown_key_inside_a_section(registry):
@@ -260,6 +261,9 @@ def test_invalid_yaml_is_a_recipe_error(tmp_path, registry):
 @pytest.mark.parametrize("path", sorted((Path(__file__).resolve().parents[1] / "recipes").glob("*.yaml")),
                          ids=lambda p: p.name)
 def test_every_shipped_recipe_validates(path):
-    """Each recipe in recipes/ composes and names existing components with valid settings."""
+    """Each recipe in recipes/ composes and names existing components with valid settings (and a
+    valid sweep, if it has one)."""
     recipe = load_recipe(path)
     assert set(recipe.sections) == {"environment", "representation", "controller", "optimizer"}
+    if recipe.settings.sweep is not None:
+        assert plan_sweep(recipe).seeds

@@ -115,20 +115,39 @@ def test_default_run_dir_is_under_runs_named_after_the_recipe(tmp_path, toy_reci
     assert first.name.startswith("toy-") and first != second  # never reuses a directory
 
 
-def test_wandb_offline_run_is_written_inside_the_run_dir(tmp_path, toy_recipe, monkeypatch):
-    for var, value in {
-        "WANDB_SILENT": "true",
-        "WANDB_DISABLE_GIT": "true",
-        "WANDB_CONFIG_DIR": str(tmp_path / "wandb-config"),
-        "WANDB_CACHE_DIR": str(tmp_path / "wandb-cache"),
-        "WANDB_DATA_DIR": str(tmp_path / "wandb-data"),
-    }.items():
-        monkeypatch.setenv(var, value)
-    monkeypatch.delenv("WANDB_API_KEY", raising=False)
-    monkeypatch.delenv("WANDB_MODE", raising=False)
+def test_wandb_offline_run_is_written_inside_the_run_dir(tmp_path, toy_recipe, wandb_offline):
     toy_recipe["tracking"] = {"wandb": True, "project": "codesign-tests", "group": "g"}
     run_dir = runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "run", progress=False)
     offline_runs = list((run_dir / "wandb").glob("offline-run-*"))
     assert len(offline_runs) == 1
     assert list(offline_runs[0].glob("*.wandb"))  # the run's data, ready for `wandb sync`
     assert len(read_metrics(run_dir)) == 3  # the JSON-lines log is kept alongside
+
+
+def test_render_switch_renders_the_best_episode_through_a_plugin_and_logs_the_video(
+    tmp_path, toy_recipe, wandb_offline
+):
+    toy_plugin.rendered.clear()
+    toy_recipe["render"] = {"enabled": True, "camera": "side", "fps": 5}
+    toy_recipe["tracking"] = {"wandb": True, "project": "codesign-tests"}
+    run_dir = runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "run", progress=False)
+    assert toy_plugin.rendered == [(run_dir, "side", 5)]
+    assert read_summary(run_dir)["status"] == "completed"
+    logged = list((run_dir / "wandb").glob("offline-run-*/files/media/videos/best_episode_*.gif"))
+    assert len(logged) == 1 and logged[0].stat().st_size > 0
+
+
+def test_render_switch_off_renders_nothing(tmp_path, toy_recipe):
+    toy_plugin.rendered.clear()
+    runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "run", progress=False)
+    assert toy_plugin.rendered == [] and not (tmp_path / "run" / "best" / "episode.gif").exists()
+
+
+def test_render_switch_fails_the_run_clearly_when_no_plugin_renders_its_environment(
+    tmp_path, toy_recipe, monkeypatch
+):
+    monkeypatch.setattr(toy_plugin, "renders", False)
+    toy_recipe["render"] = {"enabled": True}
+    with pytest.raises(CodesignError, match="render.enabled: no plugin renders environment 'toy'"):
+        runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "run", progress=False)
+    assert read_summary(tmp_path / "run")["status"] == "failed"

@@ -129,6 +129,27 @@ def codesign_cli(app) -> None:
 seeds: list[int] = []
 
 
+renders = True  # tests turn it off to see a run with nothing to render it
+rendered: list[tuple[Path, str, int]] = []
+
+
+@hookimpl
+def codesign_render_run(run_dir: Path, camera: str, fps: int) -> Path | None:
+    """Stands in for the MPM renderer for toy runs: a three-frame GIF in best/."""
+    import imageio.v2 as imageio
+
+    from codesign.runner import load_run_data
+
+    if not renders or load_run_data(run_dir)[1].sections["environment"].name != "toy":
+        return None
+
+    rendered.append((run_dir, camera, fps))
+    out = run_dir / "best" / "episode.gif"
+    out.parent.mkdir(exist_ok=True)
+    imageio.mimwrite(out, [np.full((16, 16, 3), 80 * i, np.uint8) for i in range(3)], duration=1000 / fps)
+    return out
+
+
 @hookimpl
 def codesign_seed(seed: int) -> None:
     seeds.append(seed)

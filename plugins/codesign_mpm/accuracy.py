@@ -82,8 +82,10 @@ def measure(s: Setting, periods: float = 2.6) -> dict:
                 wall_s_per_simulated_s=wall / (frames * scene.frame_dt))
 
 
-def run_accuracy_bench(sweeps: list[str], emit) -> None:
+def run_accuracy_bench(sweeps: list[str], emit, progress: bool = True) -> None:
     """Emit one JSON object per setting of each requested sweep (float64 last: it re-initialises Taichi)."""
-    for name in sorted(sweeps, key=lambda n: n == "dtype"):
-        for setting in SWEEPS[name]:
-            emit(dict(measure="accuracy", sweep=name, **measure(setting)))
+    from codesign.progress import progress_bar
+
+    cases = [(name, setting) for name in sorted(sweeps, key=lambda n: n == "dtype") for setting in SWEEPS[name]]
+    for name, setting in progress_bar(cases, desc="bench accuracy", unit="setting", show=progress):
+        emit(dict(measure="accuracy", sweep=name, **measure(setting)))

@@ -114,15 +114,20 @@ def _run_isolated(kind: str, case: Case, **kwargs) -> dict:
     return {"measure": kind, **_in_subprocess(kind, case.scale, case.dtype, case.grid_region, json.dumps(kwargs))}
 
 
-def run_engine_bench(scales: list[str], frames: int, emit) -> None:
+def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True) -> None:
     """Emit one JSON object per measurement (see docs/performance.md for what each means)."""
+    from codesign.progress import progress_bar
+
     machine = _machine()
-    for scale in scales:
-        for case in (Case(scale, "float32"), Case(scale, "float64"), Case(scale, "float32", "full")):
-            emit(dict(scale=scale, dtype=case.dtype, grid_region=case.grid_region,
-                      **_run_isolated("forward", case), **machine))
-        case = Case(scale, "float32")
-        emit(dict(scale=scale, dtype="float32", **_run_isolated("backward", case, frames=frames), **machine))
+    with progress_bar(total=4 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
+        for scale in scales:
+            for case in (Case(scale, "float32"), Case(scale, "float64"), Case(scale, "float32", "full")):
+                emit(dict(scale=scale, dtype=case.dtype, grid_region=case.grid_region,
+                          **_run_isolated("forward", case), **machine))
+                bar.update(1)
+            case = Case(scale, "float32")
+            emit(dict(scale=scale, dtype="float32", **_run_isolated("backward", case, frames=frames), **machine))
+            bar.update(1)
 
 
 # `codesign bench environments`: one scene per environment preset, forward throughput.
@@ -193,13 +198,15 @@ def measure_environment(name: str, scale: str, frames: int = 3, repeats: int = 3
     return record
 
 
-def run_environment_bench(scales: list[str], names: list[str], emit) -> None:
+def run_environment_bench(scales: list[str], names: list[str], emit, progress: bool = True) -> None:
     """Emit one JSON object per (scale, environment), each measured in its own process."""
+    from codesign.progress import progress_bar
+
     machine = _machine()
-    for scale in scales:
-        for name in names:
-            record = {"measure": "environment", "environment": name, **_in_subprocess("environment", name, scale)}
-            emit(dict(scale=scale, **record, **machine))
+    cases = [(scale, name) for scale in scales for name in names]
+    for scale, name in progress_bar(cases, desc="bench environments", unit="env", show=progress):
+        record = {"measure": "environment", "environment": name, **_in_subprocess("environment", name, scale)}
+        emit(dict(scale=scale, **record, **machine))
 
 
 if __name__ == "__main__":  # one isolated measurement, used by _run_isolated / run_environment_bench

@@ -38,6 +38,19 @@ def codesign_register(registry: PluginRegistrar) -> None:
 
 
 @hookimpl
+def codesign_render_run(run_dir: Path, camera: str, fps: int, progress: bool) -> Path | None:
+    """`render.enabled: true` in a recipe: its best episode to best/episode.mp4 (MPM environments only)."""
+    from codesign.runner import load_run_data
+
+    _, recipe = load_run_data(run_dir)
+    if recipe.sections["environment"].name not in PRESETS:
+        return None
+    from codesign_mpm.render import render as render_files
+
+    return render_files(run_dir, camera=camera, fps=fps, progress=progress)[0]
+
+
+@hookimpl
 def codesign_cli(app: typer.Typer) -> None:
     import typer  # already loaded by the CLI
 
@@ -96,6 +109,7 @@ def codesign_cli(app: typer.Typer) -> None:
         scale: list[str] = typer.Option(["small"], "--scale", help="small (dx 1/64, about 18k particles) and/or "
                                         "paper (dx 1/128, about 144k particles, 130k in the ocean); repeatable."),
         env: list[str] = typer.Option(list(PRESETS), "--env", help="Environment preset(s); repeatable."),
+        no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
     ) -> None:
         """Forward throughput of one scene per environment: particle-substeps/s, substeps per
         control step and ms per substep (the old code, paper scale: about 245 ms, 41 substeps)."""
@@ -109,12 +123,14 @@ def codesign_cli(app: typer.Typer) -> None:
         for name in env:
             if name not in PRESETS:
                 raise typer.BadParameter(f"--env {name!r}: choose from {', '.join(PRESETS)}")
-        run_environment_bench(scale, env, lambda record: typer.echo(json.dumps(record)))
+        run_environment_bench(scale, env, lambda record: typer.echo(json.dumps(record)),
+                              progress=not no_progress)
 
     @bench.command("accuracy")
     def bench_accuracy(
         sweep: list[str] = typer.Option(["dx", "particles_per_cell", "cfl", "dtype"], "--sweep",
                                         help="dx, particles_per_cell, cfl and/or dtype; repeatable."),
+        no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
     ) -> None:
         """Error of an elastic bar's ringing frequency against wall time, one setting at a time."""
         import json
@@ -124,13 +140,15 @@ def codesign_cli(app: typer.Typer) -> None:
         for s in sweep:
             if s not in SWEEPS:
                 raise typer.BadParameter(f"--sweep {s!r}: choose from {', '.join(SWEEPS)}")
-        run_accuracy_bench(sweep, lambda record: typer.echo(json.dumps(record)))
+        run_accuracy_bench(sweep, lambda record: typer.echo(json.dumps(record)),
+                           progress=not no_progress)
 
     @bench.command("engine")
     def bench_engine(
         scale: list[str] = typer.Option(["small"], "--scale", help="small (about 7.7k particles, dx 1/64) "
                                         "and/or paper (about 61k particles, dx 1/128); repeatable."),
         frames: int = typer.Option(200, "--frames", min=1, help="Frames of the differentiable episode."),
+        no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
     ) -> None:
         """Forward particle-substeps/s (float32, float64, dense grid), (forward + backward) / forward
         with checkpointing, peak memory of a differentiable episode, and first-call (compile) time."""
@@ -141,4 +159,5 @@ def codesign_cli(app: typer.Typer) -> None:
         for s in scale:
             if s not in SCALES:
                 raise typer.BadParameter(f"--scale {s!r}: choose from {', '.join(SCALES)}")
-        run_engine_bench(scale, frames, lambda record: typer.echo(json.dumps(record)))
+        run_engine_bench(scale, frames, lambda record: typer.echo(json.dumps(record)),
+                         progress=not no_progress)

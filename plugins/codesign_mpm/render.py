@@ -21,7 +21,6 @@ run directory whose best design and controller `record_run` replays for one epis
 """
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -336,7 +335,8 @@ def write_video(rec: Recording, out: str | Path, camera: str = "oblique", fps: i
                 progress: bool = True) -> Path:
     """Render every frame into an .mp4 or .gif; the progress bar shows only on a terminal."""
     import imageio.v2 as imageio
-    from tqdm import tqdm
+
+    from codesign.progress import progress_bar
 
     out = Path(out)
     if out.suffix.lower() not in VIDEO_SUFFIXES:
@@ -345,8 +345,7 @@ def write_video(rec: Recording, out: str | Path, camera: str = "oblique", fps: i
     if fps < 1:
         raise CodesignError(f"fps {fps} is invalid: must be >= 1")
     out.parent.mkdir(parents=True, exist_ok=True)
-    frames = tqdm(Renderer(rec, camera), total=rec.frames + 1, desc="render", unit="frame", file=sys.stderr,
-                  disable=not (progress and sys.stderr.isatty()))
+    frames = progress_bar(Renderer(rec, camera), total=rec.frames + 1, desc="render", unit="frame", show=progress)
     if out.suffix.lower() == ".gif":
         imageio.mimwrite(out, list(frames), duration=1000 / fps, loop=0)
     else:

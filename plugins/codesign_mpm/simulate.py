@@ -6,7 +6,6 @@ so an error inside the list still names its full key (OmegaConf alone drops ``bo
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -82,8 +81,7 @@ class SimulationReport:
 
 def simulate(scene: Scene, frames: int, export: Path | None = None, progress: bool = True) -> SimulationReport:
     """Simulate ``frames`` frames with zero actions; with ``export``, save every frame's x and v."""
-    from tqdm import tqdm
-
+    from codesign.progress import progress_bar
     from codesign_mpm.engine import SimulationError, Simulator
 
     started = time.perf_counter()
@@ -101,7 +99,7 @@ def simulate(scene: Scene, frames: int, export: Path | None = None, progress: bo
     try:
         if keep:
             xs[0], vs[0] = sim.particles_state()[:2]
-        for frame in tqdm(range(frames), desc="simulate", unit="frame", disable=not progress, file=sys.stderr):
+        for frame in progress_bar(range(frames), desc="simulate", unit="frame", show=progress):
             sim.step()
             if keep:
                 xs[frame + 1], vs[frame + 1] = sim.particles_state()[:2]

@@ -116,3 +116,11 @@ def test_bad_options_name_the_value_and_the_choices(tmp_path, cli, args, message
 def test_a_path_that_is_neither_a_run_nor_an_export_is_named(tmp_path, cli):
     code, _, err = cli("render", str(tmp_path / "nothing.txt"))
     assert code == 1 and "nothing.txt" in err and "run directory" in err
+
+
+def test_render_switch_writes_the_best_episode_video_when_the_run_ends(tmp_path):
+    recipe = resolve_recipe({**TINY, "render": {"enabled": True, "camera": "side", "fps": 10}})
+    run = runner.run(recipe, run_dir=tmp_path / "run", progress=False)
+    video = run / "best" / "episode.mp4"
+    assert video.stat().st_size > 1000
+    assert len(frames_of(video)) == HORIZON + 1
