@@ -92,7 +92,7 @@ def seed_everything(seed: int) -> np.random.Generator:
 def run(recipe: ResolvedRecipe, *, run_dir: str | Path | None = None, progress: bool = True) -> Path:
     """Run a recipe in a new run directory and return that directory."""
     if run_dir is None and recipe.settings.run_dir is None:
-        directory = _fresh_run_dir(recipe.name)
+        directory = fresh_dir("runs", recipe.name)
     else:
         directory = Path(run_dir if run_dir is not None else recipe.settings.run_dir)
         if directory.exists() and any(directory.iterdir()):
@@ -334,8 +334,9 @@ def _save_checkpoint(path: Path, state: dict) -> None:
     os.replace(tmp, path)
 
 
-def _fresh_run_dir(name: str) -> Path:
-    base = Path("runs") / f"{name}-{datetime.now():%Y%m%d-%H%M%S}"
+def fresh_dir(parent: str, name: str) -> Path:
+    """A new directory name ``parent/<name>-<YYYYmmdd-HHMMSS>[-n]`` (not created)."""
+    base = Path(parent) / f"{name}-{datetime.now():%Y%m%d-%H%M%S}"
     candidate, n = base, 1
     while candidate.exists():
         candidate, n = Path(f"{base}-{n}"), n + 1

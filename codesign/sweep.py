@@ -29,7 +29,6 @@ import os
 import shutil
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
-from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -38,7 +37,7 @@ from omegaconf import OmegaConf
 from codesign.errors import CodesignError, RecipeError
 from codesign.recipe import ResolvedRecipe, SweepConfig, merge_recipes, resolve_recipe
 from codesign.registry import suggest
-from codesign.runner import CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, read_metrics
+from codesign.runner import CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, fresh_dir, read_metrics
 
 if TYPE_CHECKING:
     import optuna
@@ -355,7 +354,7 @@ def _sweep_dir(recipe: ResolvedRecipe, sweep_dir: str | Path | None, resume: boo
             raise CodesignError(f"the recipe differs from the one the sweep in {directory} ran ({SWEEP_FILE}); "
                                 f"resume with the same recipe and overrides (only sweep.backend may change)")
         return directory
-    directory = Path(sweep_dir) if sweep_dir is not None else _fresh_sweep_dir(recipe.name)
+    directory = Path(sweep_dir) if sweep_dir is not None else fresh_dir("sweeps", recipe.name)
     if directory.exists() and any(directory.iterdir()):
         raise CodesignError(f"sweep directory {directory} is not empty; continue it with --resume "
                             f"--sweep-dir {directory} or choose another --sweep-dir")
@@ -367,14 +366,6 @@ def _sweep_dir(recipe: ResolvedRecipe, sweep_dir: str | Path | None, resume: boo
 def _comparable(data: dict) -> dict:
     """The recipe as a resumed sweep must match it: where trials run may change."""
     return {**data, "sweep": {k: v for k, v in data["sweep"].items() if k != "backend"}}
-
-
-def _fresh_sweep_dir(name: str) -> Path:
-    base = Path("sweeps") / f"{name}-{datetime.now():%Y%m%d-%H%M%S}"
-    candidate, n = base, 1
-    while candidate.exists():
-        candidate, n = Path(f"{base}-{n}"), n + 1
-    return candidate
 
 
 def _study(plan: Plan, directory: Path) -> optuna.Study:
