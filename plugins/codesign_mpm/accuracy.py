@@ -77,6 +77,7 @@ class Problem:
     answer: str  # the known answer, in words
     measure: Callable[[Setting, dict], dict]  # -> dict(value=..., exact=... (analytic problems), **details)
     sizes: dict[str, Size]
+    notes: str = ""  # how to read the result (the report adds what the measurement says)
 
 
 def _peak_rss_mb() -> float:
@@ -245,9 +246,12 @@ def measure_granular_column(s: Setting, params: dict) -> dict:
 
 # ------------------------------------------------------------------------------ robot locomotion
 def gait(frame: int, k: int, amplitude: float = 0.3, hz: float = 3.0) -> np.ndarray:
-    """A fixed travelling-wave gait: actuator j lags j quarter periods."""
+    """The gait of tests/mpm/test_engine_physics.py for the 4 muscles of a [2, 2, 1] grid: (sin, cos,
+    -sin, -cos) at 3 Hz. Of five simple gaits tried at dx 1/32 and 1/48 it moved the box furthest
+    without hopping (about 0.4 body lengths per second, backwards); a travelling wave sin(phase - j pi/2)
+    moved it 0.1 body lengths, with a sign that changed with dx."""
     phase = 2 * math.pi * hz * frame * 8e-3
-    return amplitude * np.sin(phase - np.arange(k) * math.pi / 2)
+    return amplitude * np.array([math.sin(phase), math.cos(phase), -math.sin(phase), -math.cos(phase)])[:k]
 
 
 def robot_env(environment: str, s: Setting, horizon: int):
@@ -382,14 +386,18 @@ PROBLEMS: dict[str, Problem] = {
         "bar", "Elastic bar: ringing frequency", "frequency (Hz)",
         "f = sqrt(E / rho) / (2 L) = 3.953 Hz (free-free bar, Poisson's ratio 0, first longitudinal mode)",
         measure_bar,
-        {"quick": Size(sweep(Setting(dx=1 / 20), dx=[1 / 32], cfl=[0.8]), params=dict(periods=2.6)),
+        notes="At these resolutions the bar is 8 to 26 cells long; where its ends fall between nodes changes its "
+              "effective length, so the error is not monotone in dx: compare trends, not neighbours.",
+        sizes={"quick": Size(sweep(Setting(dx=1 / 20), dx=[1 / 32], cfl=[0.8]), params=dict(periods=2.6)),
          "default": Size(sweep(Setting(dx=1 / 32), dx=[1 / 20, 1 / 24, 1 / 48, 1 / 64], particles_per_cell=[1, 27],
                                cfl=[0.1, 0.2, 0.8], dtype=["float64"]), params=dict(periods=2.6))}),
     "water_column": Problem(
         "water_column", "Water column: hydrostatic floor pressure after settling", "floor pressure (Pa)",
         "p_floor = rho0 g H0 = 760 Pa (H0 0.2; the weight per area, exact in equilibrium at any compression)",
         measure_water_column,
-        {"quick": Size(sweep(Setting(dx=1 / 24), dx=[1 / 32], particles_per_cell=[1]),
+        notes="The settled height is compared with the small-strain answer H0 (1 - rho0 g H0 / (2 K)) in the "
+              "height_error column; the bulk modulus 1e5 keeps the compression under 1%.",
+        sizes={"quick": Size(sweep(Setting(dx=1 / 24), dx=[1 / 32], particles_per_cell=[1]),
                        params=dict(height=0.2, seconds=0.3)),
          "default": Size(sweep(Setting(dx=1 / 32), dx=[1 / 24, 1 / 48, 1 / 64], particles_per_cell=[1, 27],
                                cfl=[0.2, 0.8], dtype=["float64"]), params=dict(height=0.2, seconds=0.6))}),
@@ -397,23 +405,32 @@ PROBLEMS: dict[str, Problem] = {
         "granular_column", "Granular column collapse: runout", "runout from the wall",
         "converged: the finest setting; Lube et al. (2005) for aspect 2: L = L0 (1 + 1.2 a) = 3.4 L0 (context only)",
         measure_granular_column,
-        {"quick": Size(sweep(Setting(dx=1 / 32), dx=[1 / 48], cfl=[0.8]), Setting(dx=1 / 48),
+        notes="The empirical law is for glass beads in a channel; our sand (Drucker-Prager, friction angle 30 deg, "
+              "Coulomb floor 0.5) is not fitted to it, so it is context for the trend, not the answer.",
+        sizes={"quick": Size(sweep(Setting(dx=1 / 32), dx=[1 / 48], cfl=[0.8]), Setting(dx=1 / 48),
                        dict(width=0.08, height=0.16, seconds=0.5)),
          "default": Size(sweep(Setting(dx=1 / 64), dx=[1 / 32, 1 / 48, 1 / 96, 1 / 128], particles_per_cell=[1, 27],
                                cfl=[0.2, 0.8], dtype=["float64"]) + [Setting(dx=1 / 128, cfl=0.2, dtype="float64")],
                          Setting(dx=1 / 128, cfl=0.2, dtype="float64"), dict(width=0.08, height=0.16, seconds=0.8))}),
     "robot_ground": Problem(
-        "robot_ground", "Robot on ground: distance in 1 s", "distance travelled along x",
-        "converged: the finest setting (a fixed sine gait, environment `ground`)", measure_robot("ground"), {}),
+        "robot_ground", "Robot on ground: distance in 1 s (quick size: 0.25 s)", "distance travelled along x",
+        "converged: the finest setting (a fixed sine gait, environment `ground`)", measure_robot("ground"), {},
+        notes="Locomotion through frictional contact is sensitive to the discretisation: compare designs and "
+              "controllers at one setting (one quality preset), not across settings."),
     "robot_desert": Problem(
-        "robot_desert", "Robot in the desert (sand cover): distance in 1 s", "distance travelled along x",
-        "converged: the finest setting (a fixed sine gait, environment `desert`)", measure_robot("desert"), {}),
+        "robot_desert", "Robot in the desert (sand cover): distance in 1 s (quick size: 0.25 s)", "distance travelled along x",
+        "converged: the finest setting (a fixed sine gait, environment `desert`)", measure_robot("desert"), {},
+        notes="The sand layer is 0.02 thick: half a cell at dx 1/24, so coarse grids hardly resolve it."),
     "gradient": Problem(
         "gradient", "Gradients of the distance: d/d(actions) and d/d(log stiffness)",
         "d distance / d actions (T x K) and d distance / d log E",
         "converged: the finest setting; and central differences of float64 rollouts at each setting",
         measure_gradient,
-        {"quick": Size([Setting(dtype="float64"), Setting(dtype="float64", checkpoint_every=1),
+        notes="error is the larger of error_actions (relative L2 over the T x K action gradient) and "
+              "error_stiffness against the finest setting; fd_error_* compare each setting's gradient with "
+              "float64 central differences (step 1e-5) of the same scene, along a random unit direction of the "
+              "actions and along a uniform scaling of the stiffness.",
+        sizes={"quick": Size([Setting(dtype="float64"), Setting(dtype="float64", checkpoint_every=1),
                         Setting(dtype="float64", cfl=0.8), Setting(dtype="float64", cfl=0.2)],
                        Setting(dtype="float64", cfl=0.2), dict(frames=4)),
          "default": Size(sweep(Setting(dtype="float64"), checkpoint_every=[1, 8], cfl=[0.2, 0.8], dtype=["float32"])

@@ -125,6 +125,8 @@ def write_accuracy_report(rows: list[dict], directory: Path | str) -> Path:
         if not prows:
             continue
         lines += [f"## {problem.title} (`{name}`)", "", f"Known answer: {problem.answer}.", ""]
+        if problem.notes:
+            lines += [problem.notes, ""]
         failed = [r for r in prows if "failed" in r]
         ok = [r for r in prows if "error" in r]
         plotted = [r for r in ok if not r["reference"]]
@@ -155,7 +157,13 @@ def write_accuracy_report(rows: list[dict], directory: Path | str) -> Path:
             lines.append("| " + " | ".join(map(str, cells)) + " |")
         lines.append("")
         if plotted:
-            lines += _accuracy_summary(plotted, front) + [""]
+            summary = _accuracy_summary(plotted, front)
+            scalar = [r["value"] for r in ok if np.ndim(r["value"]) == 0]
+            if scalar and name != "bar":
+                ref = next((r["value"] for r in ok if r["reference"]), None)
+                summary[0] += (f" The measured {problem.quantity} ranges from {_fmt(min(scalar), 4)} to "
+                               f"{_fmt(max(scalar), 4)}" + (f" (reference {_fmt(ref, 4)})." if ref is not None else "."))
+            lines += summary + [""]
         if failed:
             lines += [f"{len(failed)} setting(s) failed; the message is in the table.", ""]
     lines += _preset_section(rows)
@@ -246,27 +254,38 @@ def write_stability_report(rows: list[dict], directory: Path | str) -> Path:
         "a failure). Energy drift is (E_end - E_0) / E_scale with E = kinetic + gravitational (+ neo-Hookean "
         "elastic for elastic bodies) and E_scale the largest of |E_0|, the peak kinetic energy and the work "
         "gravity could do over the domain's height; it is a diagnostic, not a conservation check: "
-        "friction, plasticity, APIC's dissipation and muscles all change it.",
+        "friction, plasticity, APIC's dissipation and muscles all change it. Gradient norms are of the distance "
+        "travelled along x in the differentiable frames (dL/dE: scaled by E, i.e. per log-stiffness); "
+        "min/max J, max abs(v) and the energy drift are over the forward frames reached (up to an error); *wall s* is the whole case, kernel compiles "
+        "included (a cold backward compile takes minutes).",
         "",
         "Outcomes: " + ", ".join(f"{n} {o}" for o, n in counts.items()) + f" of {len(rows)} runs.",
         "",
     ]
+    failures = [r for r in rows if r["outcome"] in ("NON-FINITE", "crash")]
+    if failures:
+        lines += ["Failures (a NaN or an unexpected exception), as measured:", ""]
+        lines += [f"- `{r['case']}` at {r['setting']}: **{r['outcome']}**: `{r.get('message', '')}`" for r in failures]
+        lines.append("")
     for name, case in CASES.items():
         crows = [r for r in rows if r.get("case") == name]
         if not crows:
             continue
         lines += [f"## `{name}`", "", case.description, ""]
-        head = ["setting", "particles", "substeps/frame", "frames fwd / bwd", "outcome", "max abs(v)", "min J",
+        head = ["setting", "particles", "substeps/frame", "frames fwd (reached) / bwd", "outcome", "max abs(v)", "min J",
                 "max J", "energy drift", "abs(dL/da)", "abs(dL/dE)", "abs(dL/dx0)", "wall s"]
         lines += ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
         for r in crows:
             cells = [r["setting"], r.get("particles", ""), r.get("substeps_per_frame", ""),
-                     f"{r.get('frames_forward', '')} / {r.get('frames_backward', '')}", f"**{r['outcome']}**",
+                     f"{r.get('frames_forward', '')} ({r.get('frames_reached', 0)}) / {r.get('frames_backward', '')}",
+                     f"**{r['outcome']}**",
                      _fmt(r.get("max_speed")), _fmt(r.get("min_J")), _fmt(r.get("max_J")),
                      _fmt(r.get("energy_drift")), _fmt(r.get("grad_actions_norm")), _fmt(r.get("grad_stiffness_norm")),
                      _fmt(r.get("grad_x0_norm")), _fmt(r.get("wall_s"))]
             lines.append("| " + " | ".join(map(str, cells)) + " |")
         messages = [(r["setting"], r["message"]) for r in crows if r.get("message")]
+        if messages:
+            lines.append("")
         for setting, message in messages:
             lines.append(f"- {setting}: `{message}`")
         lines.append("")

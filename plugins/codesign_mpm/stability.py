@@ -203,7 +203,8 @@ def run_case(name: str, size: str, s: Setting) -> dict:
             sim.set_initial_state(F=F0)
         x, v, _, F = sim.particles_state()
         e0, _ = energy(sim, x, v, F)
-        vmax, jmin, jmax, kmax = 0.0, np.inf, -np.inf, 0.0
+        kmax = 0.0
+        scale = GRAVITY * float(sim.particles.volume @ sim.particles.density) * sim.scene.size[1]
         stage = "forward"
         for f in range(spec.frames_forward):
             sim.step(actions(f))
@@ -211,13 +212,14 @@ def run_case(name: str, size: str, s: Setting) -> dict:
             if not _finite(x, v, F):
                 record.update(outcome="NON-FINITE", message=f"non-finite state after frame {f + 1}")
                 return record
+            # statistics so far: a run that stops with an error keeps what it reached
             J = np.linalg.det(F.astype(np.float64))
-            vmax, jmin, jmax = max(vmax, float(np.abs(v).max())), min(jmin, float(J.min())), max(jmax, float(J.max()))
-            kmax = max(kmax, energy(sim, x, v, F)[1])
-        e1, _ = energy(sim, x, v, F)
-        height = sim.scene.size[1]
-        scale = max(abs(e0), kmax, GRAVITY * float(sim.particles.volume @ sim.particles.density) * height)
-        record.update(max_speed=vmax, min_J=jmin, max_J=jmax, energy_drift=(e1 - e0) / scale)
+            e1, kinetic = energy(sim, x, v, F)
+            kmax = max(kmax, kinetic)
+            record.update(frames_reached=f + 1, max_speed=max(record.get("max_speed", 0.0), float(np.abs(v).max())),
+                          min_J=min(record.get("min_J", np.inf), float(J.min())),
+                          max_J=max(record.get("max_J", -np.inf), float(J.max())),
+                          energy_drift=(e1 - e0) / max(abs(e0), kmax, scale))
         stage = "backward"
         start = State(*(np.asarray(a, dtype=np.float64) for a in (*sim.particles_state(), sim.plastic_volume_ratio())))
         T = spec.frames_backward
