@@ -144,7 +144,7 @@ def write_accuracy_report(rows: list[dict], directory: Path | str) -> Path:
             if "failed" in r:
                 lines.append(f"| {r['setting']} | failed: {r['failed']} |" + " |" * (len(head) - 2))
                 continue
-            value = r["value"] if np.ndim(r["value"]) == 0 else f"|g| {np.linalg.norm(r['value'][:-1]):.4g}, " \
+            value = r["value"] if np.ndim(r["value"]) == 0 else f"norm {np.linalg.norm(r['value'][:-1]):.4g}, " \
                                                                    f"dD/dlogE {r['value'][-1]:.4g}"
             cells = [r["setting"] + (" (reference)" if r["reference"] else ""), r["particles"],
                      r["substeps_per_frame"], value if isinstance(value, str) else _fmt(value, 5),
@@ -186,18 +186,15 @@ def _accuracy_summary(rows: list[dict], front: list[int]) -> list[str]:
         else:
             text.append(f"No measured setting{' but the reference' if any(r['reference'] for r in rows) else ''} "
                         f"comes within {_pct(level)}.")
+    base = {k: max({r[k] for r in rows}, key=lambda v: sum(r[k] == v for r in rows)) for k in SETTING_KEYS}
     spans = []
-    for key in ("dx", "particles_per_cell", "cfl", "dtype"):
-        values = {}
-        for r in rows:
-            values.setdefault(r[key], []).append(r["error"])
-        if len(values) > 1:
-            med = {k: float(np.median(v)) for k, v in values.items()}
-            spans.append((max(med.values()) / max(min(med.values()), 1e-15), key))
+    for key in SETTING_KEYS:  # the one-at-a-time sweep of `key`, the other settings at the most common values
+        sweep = [r for r in rows if all(r[k] == base[k] for k in SETTING_KEYS if k != key)]
+        if len({r[key] for r in sweep}) > 1:
+            errors = [r["error"] for r in sweep]
+            spans.append(f"{key} {_pct(min(errors))} to {_pct(max(errors))}")
     if spans:
-        spans.sort(reverse=True)
-        text.append("Ranked by how much they move the median error (largest first): "
-                    + ", ".join(f"{key} ({ratio:.3g}x)" for ratio, key in spans) + ".")
+        text.append("Changing one setting at a time moves the error: " + "; ".join(spans) + ".")
     return [" ".join(text)]
 
 
