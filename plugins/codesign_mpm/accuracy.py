@@ -377,7 +377,9 @@ def _robot_sizes(environment: str) -> dict[str, Size]:
     default = sweep(Setting(dx=1 / 48), dx=dxs, particles_per_cell=[1, 27], cfl=[0.2, 0.8], dtype=["float64"])
     finest = Setting(dx=finest_dx, particles_per_cell=27, cfl=0.2, dtype="float64")
     presets = [Setting(q.dx, q.particles_per_cell, q.cfl, q.dtype) for q in QUALITY.values() if q.dx >= finest_dx]
-    default += [p for p in presets + [finest] if p not in default]
+    for p in presets + [finest]:
+        if p not in default:
+            default.append(p)
     return {"quick": Size(quick, quick_ref, dict(seconds=0.25)), "default": Size(default, finest, dict(seconds=1.0))}
 
 

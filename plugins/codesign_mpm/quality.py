@@ -30,8 +30,8 @@ class Quality:
 
 QUALITY: dict[str, Quality] = {
     "draft": Quality(dx=1 / 32, particles_per_cell=8, cfl=0.4, dtype="float32",
-                     purpose="smoke tests, recipe debugging, quick sweeps: the cheapest point of the ground "
-                             "robot's front; cfl 0.8, cheaper still in the desert, blows up far earlier in "
+                     purpose="smoke tests, recipe debugging, quick sweeps: on both robots' fronts, where dx 1/24 "
+                             "more than doubles the desert's error; cfl 0.8 blows up far earlier in "
                              "docs/stability.md"),
     "default": Quality(dx=1 / 48, particles_per_cell=8, cfl=0.4, dtype="float32",
                        purpose="the settings every recipe had before presets (kept so that results do not move); "
