@@ -371,7 +371,8 @@ def _robot_sizes(environment: str) -> dict[str, Size]:
     from codesign_mpm.quality import QUALITY
 
     quick_ref = Setting(dx=1 / 32, cfl=0.2, dtype="float64")
-    quick = sweep(Setting(dx=1 / 24), dx=[1 / 32], particles_per_cell=[1], cfl=[0.8], dtype=["float64"]) + [quick_ref]
+    # 27 particles per cell, not 1: at dx 1/24 one particle per cell leaves the desert's 0.02 layer empty
+    quick = sweep(Setting(dx=1 / 24), dx=[1 / 32], particles_per_cell=[27], cfl=[0.8], dtype=["float64"]) + [quick_ref]
     finest_dx = 1 / 128 if environment == "ground" else 1 / 64
     dxs = [1 / 24, 1 / 32, 1 / 64, 1 / 96] if environment == "ground" else [1 / 24, 1 / 32, 1 / 64]
     default = sweep(Setting(dx=1 / 48), dx=dxs, particles_per_cell=[1, 27], cfl=[0.2, 0.8], dtype=["float64"])
