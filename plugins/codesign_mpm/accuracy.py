@@ -298,7 +298,8 @@ def gradient_scene(s: Setting):
     return Scene(size=[1.0, 0.5, 0.5], dx=s.dx, dtype=s.dtype, cfl=s.cfl,
                  terrain=TerrainSpec(kind="flat", height=0.1, friction=0.5),
                  bodies=[BodySpec(name="robot", robot=True, shape=ShapeSpec(size=[0.16, 0.08, 0.08]),
-                                  center=[0.5, 0.0, 0.25], rest_on_terrain=True, particles_per_cell=s.particles_per_cell,
+                                  center=[0.5, 0.0, 0.25], rest_on_terrain=True,
+                                  particles_per_cell=s.particles_per_cell,
                                   muscles=MuscleSpec(groups=[2, 2, 1]))])
 
 
@@ -408,7 +409,8 @@ PROBLEMS: dict[str, Problem] = {
         "granular_column", "Granular column collapse: runout", "runout from the wall",
         "converged: the finest setting; Lube et al. (2005) for aspect 2: L = L0 (1 + 1.2 a) = 3.4 L0 (context only)",
         measure_granular_column,
-        notes="The empirical law was fitted to dry granular materials collapsing in a channel; our sand (Drucker-Prager, friction angle 30 deg, "
+        notes="The empirical law was fitted to dry granular materials collapsing in a channel; our sand "
+              "(Drucker-Prager, friction angle 30 deg, "
               "Coulomb floor 0.5) is not fitted to it, so it is context for the trend, not the answer.",
         sizes={"quick": Size(sweep(Setting(dx=1 / 32), dx=[1 / 48], cfl=[0.8]), Setting(dx=1 / 48),
                        dict(width=0.08, height=0.16, seconds=0.5)),
@@ -421,7 +423,8 @@ PROBLEMS: dict[str, Problem] = {
         notes="Locomotion through frictional contact is sensitive to the discretisation: compare designs and "
               "controllers at one setting (one quality preset), not across settings."),
     "robot_desert": Problem(
-        "robot_desert", "Robot in the desert (sand cover): distance in 1 s (quick size: 0.25 s)", "distance travelled along x",
+        "robot_desert", "Robot in the desert (sand cover): distance in 1 s (quick size: 0.25 s)",
+        "distance travelled along x",
         "converged: the finest setting (a fixed sine gait, environment `desert`)", measure_robot("desert"), {},
         notes="The sand layer is 0.02 thick: half a cell at dx 1/24, so coarse grids hardly resolve it. With the "
               "layer the scene has about 8x the particles of the robot alone, so dx 1/96 and finer were left out to "

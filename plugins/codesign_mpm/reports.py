@@ -136,8 +136,10 @@ def write_accuracy_report(rows: list[dict], directory: Path | str) -> Path:
             _plot(plotted, front, f"{problem.title} ({size})", directory / image)
             lines += [f"![{name}: error against wall time]({image})", ""]
         extra = {"water_column": ("settled_height", "height_error"), "granular_column": ("lube_2005",),
-                 "gradient": ("error_actions", "error_stiffness", "fd_error_actions", "fd_error_stiffness")}.get(name, ())
-        head = ["setting", "particles", "substeps/frame", problem.quantity, "error", "wall s", "peak MB", *extra, "front"]
+                 "gradient": ("error_actions", "error_stiffness", "fd_error_actions", "fd_error_stiffness"),
+                 }.get(name, ())
+        head = ["setting", "particles", "substeps/frame", problem.quantity, "error", "wall s", "peak MB", *extra,
+                "front"]
         lines += ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
         front_rows = {id(plotted[i]) for i in front}
         for r in sorted(prows, key=lambda r: r.get("wall_s", 0.0)):
@@ -162,7 +164,8 @@ def write_accuracy_report(rows: list[dict], directory: Path | str) -> Path:
             if scalar and name != "bar":
                 ref = next((r["value"] for r in ok if r["reference"]), None)
                 summary[0] += (f" The measured {problem.quantity} ranges from {_fmt(min(scalar), 4)} to "
-                               f"{_fmt(max(scalar), 4)}" + (f" (reference {_fmt(ref, 4)})." if ref is not None else "."))
+                               f"{_fmt(max(scalar), 4)}"
+                               + (f" (reference {_fmt(ref, 4)})." if ref is not None else "."))
             lines += summary + [""]
         if failed:
             lines += [f"{len(failed)} setting(s) failed; the message is in the table.", ""]
@@ -253,7 +256,8 @@ def write_stability_report(rows: list[dict], directory: Path | str) -> Path:
         "gravity could do over the domain's height; it is a diagnostic, not a conservation check: "
         "friction, plasticity, APIC's dissipation and muscles all change it. Gradient norms are of the distance "
         "travelled along x in the differentiable frames (dL/dE: scaled by E, i.e. per log-stiffness); "
-        "min/max J, max abs(v) and the energy drift are over the forward frames reached (up to an error); *wall s* is the whole case, kernel compiles "
+        "min/max J, max abs(v) and the energy drift are over the forward frames reached (up to an error); "
+        "*wall s* is the whole case, kernel compiles "
         "included (a cold backward compile takes minutes).",
         "",
         "Outcomes: " + ", ".join(f"{n} {o}" for o, n in counts.items()) + f" of {len(rows)} runs.",
@@ -269,7 +273,8 @@ def write_stability_report(rows: list[dict], directory: Path | str) -> Path:
         if not crows:
             continue
         lines += [f"## `{name}`", "", case.description, ""]
-        head = ["setting", "particles", "substeps/frame", "frames fwd (reached) / bwd", "outcome", "max abs(v)", "min J",
+        head = ["setting", "particles", "substeps/frame", "frames fwd (reached) / bwd", "outcome", "max abs(v)",
+                "min J",
                 "max J", "energy drift", "abs(dL/da)", "abs(dL/dE)", "abs(dL/dx0)", "wall s"]
         lines += ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
         for r in crows:
