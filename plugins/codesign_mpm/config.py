@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, make_dataclass
 from typing import Any, Optional
 
 from codesign.bodies import BODY_FILE_SUFFIXES, LIBRARY_BODIES
+from codesign_mpm.quality import QUALITY_NAMES, quality
 
 ROBOT_BODIES = ("box", "ellipsoid", *LIBRARY_BODIES, "file")
 COVER_KINDS = ("none", "sand", "snow", "clay", "mud", "water")
@@ -39,7 +40,8 @@ class CoverConfig:
     max_hardening: float = field(default=10.0, metadata={"ge": 1, "le": 100, "help": "snow: bound on exp(xi (1-Jp))"})
     bulk_modulus: float = field(default=1.0e5, metadata={"gt": 0, "help": "water: K (sound speed sqrt(K/rho))"})
     viscosity: float = field(default=0.0, metadata={"ge": 0, "help": "water, mud: dynamic viscosity"})
-    particles_per_cell: int = field(default=8, metadata={"choices": [1, 8, 27, 64]})
+    particles_per_cell: Optional[int] = field(default=None, metadata={
+        "choices": [1, 8, 27, 64], "help": "null = the environment's quality preset's"})
     settled: bool = field(default=True, metadata={
         "help": "start loaded by its own weight (geostatic F, codesign_mpm.settle); false: stress-free, it "
                 "settles during the first frames"})
@@ -109,7 +111,8 @@ class RobotConfig:
         metadata={"ge": 1, "min_len": 3, "help": "grid of muscle blocks along x, y, z; K = their product (box, "
                                                 "ellipsoid, unannotated files; other bodies bring their own muscles)"},
     )
-    particles_per_cell: int = field(default=8, metadata={"choices": [1, 8, 27, 64]})
+    particles_per_cell: Optional[int] = field(default=None, metadata={
+        "choices": [1, 8, 27, 64], "help": "null = the environment's quality preset's"})
     rest_on: str = field(default="terrain", metadata={
         "choices": ["terrain", "cover"], "help": "terrain: stand on the terrain inside the cover (the paper); "
                                                 "cover: start on top of the cover layer"})
@@ -167,13 +170,26 @@ class ObservationConfig:
 
 @dataclass
 class LocomotionConfig:
-    dx: float = field(default=1.0 / 48, metadata={"gt": 0, "le": 0.1, "help": "grid spacing"})
+    """A locomotion environment. `quality` sets dx, cfl, dtype, checkpoint_every and the robot's
+    and cover's particles_per_cell (codesign_mpm.quality); each of them written explicitly wins."""
+
+    quality: str = field(default="default", metadata={
+        "choices": list(QUALITY_NAMES), "help": "numerical settings preset (docs/accuracy.md); explicit "
+                                                "dx, cfl, dtype, checkpoint_every, particles_per_cell override it"})
+    dx: Optional[float] = field(default=None, metadata={
+        "gt": 0, "le": 0.1, "help": "grid spacing; null = the quality preset's"})
+    cfl: Optional[float] = field(default=None, metadata={
+        "gt": 0, "le": 1, "help": "dt <= cfl dx / wave speed; null = the quality preset's"})
+    checkpoint_every: Optional[int] = field(default=None, metadata={
+        "ge": 1, "help": "substeps between stored states of a differentiable episode; null = the quality "
+                         "preset's (memory-optimal sqrt(T/2) when it has none)"})
     size: list[float] = field(
         default_factory=lambda: [1.0, 0.5, 0.5], metadata={"gt": 0, "min_len": 3, "help": "domain extents"}
     )
     horizon: int = field(default=100, metadata={"ge": 1, "help": "control steps per episode"})
     frame_dt: float = field(default=8e-3, metadata={"gt": 0, "help": "simulated seconds per control step"})
-    dtype: str = field(default="float32", metadata={"choices": ["float32", "float64"]})
+    dtype: Optional[str] = field(default=None, metadata={
+        "choices": ["float32", "float64"], "help": "null = the quality preset's"})
     arch: str = field(default="cpu", metadata={"choices": ["cpu", "cuda", "gpu"]})
     robot: RobotConfig = field(default_factory=RobotConfig)
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
@@ -181,6 +197,24 @@ class LocomotionConfig:
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     cover: Optional[CoverConfig] = field(
         default=None, metadata={"help": "ground cover layer; null = the environment's own"})
+
+    def __post_init__(self) -> None:
+        """Fill the settings left null from the quality preset (an unknown name: RecipeError)."""
+        q = quality(self.quality)
+        for key in ("dx", "cfl", "dtype", "checkpoint_every"):
+            if getattr(self, key) is None:
+                setattr(self, key, getattr(q, key))
+        if self.robot.particles_per_cell is None:
+            self.robot.particles_per_cell = q.particles_per_cell
+        if self.cover is not None and self.cover.particles_per_cell is None:
+            self.cover.particles_per_cell = q.particles_per_cell
+
+    def resolved_cover(self, preset: EnvironmentPreset) -> CoverConfig:
+        """The cover to lay: this config's, else the preset's, with particles per cell resolved."""
+        cover = copy.copy(preset.cover if self.cover is None else self.cover)
+        if cover.particles_per_cell is None:
+            cover.particles_per_cell = quality(self.quality).particles_per_cell
+        return cover
 
 
 def _preset_config(name: str, preset: EnvironmentPreset) -> type:

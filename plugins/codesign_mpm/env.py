@@ -101,7 +101,7 @@ def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
     """The scene of a locomotion config: the actuated robot resting on the terrain, then the cover."""
     t, r = config.terrain, config.robot
     shape, muscles = robot_shape(r)
-    cover = preset.cover if config.cover is None else config.cover
+    cover = config.resolved_cover(preset)
     on_cover = r.rest_on == "cover" and cover.kind != "none"
     scene = Scene(
         size=list(config.size),
@@ -121,6 +121,7 @@ def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
             robot=True,
         )],
         frame_dt=config.frame_dt,
+        cfl=config.cfl,
         dtype=config.dtype,
         arch=config.arch,
     )
@@ -282,7 +283,7 @@ class LocomotionEnv(Environment):
             if self._grad_sim is not None:
                 self._grad_sim.close()
             self._grad_sim = Simulator(self.scene, particles, requires_grad=True, max_frames=self.horizon,
-                                       capacity=self.capacity)
+                                       checkpoint_every=self.config.checkpoint_every, capacity=self.capacity)
         else:
             self._grad_sim.reset(particles)
         self._grad_sim.set_initial_state(F=self.initial_deformation(particles))

@@ -128,20 +128,63 @@ def codesign_cli(app: typer.Typer) -> None:
 
     @bench.command("accuracy")
     def bench_accuracy(
-        sweep: list[str] = typer.Option(["dx", "particles_per_cell", "cfl", "dtype"], "--sweep",
-                                        help="dx, particles_per_cell, cfl and/or dtype; repeatable."),
+        problem: list[str] = typer.Option([], "--problem", help="Reference problem(s) (default: all): bar, "
+                                          "water_column, granular_column, robot_ground, robot_desert, gradient."),
+        quick: bool = typer.Option(False, "--quick", help="Tiny sizes (seconds per problem) instead of the default."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Also write DIR/accuracy.md with one Pareto "
+                                              "plot per problem (DIR/images/) and DIR/data/accuracy-SIZE.jsonl."),
+        from_file: Optional[Path] = typer.Option(None, "--from", help="Write the report from these JSON lines "
+                                                 "instead of measuring."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
     ) -> None:
-        """Error of an elastic bar's ringing frequency against wall time, one setting at a time."""
+        """Error against wall time and peak memory of reference problems with known or converged answers,
+        over dx, particles per cell, cfl, float32/float64 and the checkpoint interval."""
         import json
 
-        from codesign_mpm.accuracy import SWEEPS, run_accuracy_bench
+        from codesign_mpm.accuracy import PROBLEMS, run_accuracy_bench
 
-        for s in sweep:
-            if s not in SWEEPS:
-                raise typer.BadParameter(f"--sweep {s!r}: choose from {', '.join(SWEEPS)}")
-        run_accuracy_bench(sweep, lambda record: typer.echo(json.dumps(record)),
-                           progress=not no_progress)
+        for name in problem:
+            if name not in PROBLEMS:
+                raise typer.BadParameter(f"--problem {name!r}: choose from {', '.join(PROBLEMS)}")
+        size = "quick" if quick else "default"
+        if from_file is not None:
+            rows = [json.loads(line) for line in from_file.read_text().splitlines() if line.strip()]
+        else:
+            rows = run_accuracy_bench(problem or list(PROBLEMS), size, lambda r: typer.echo(json.dumps(r)),
+                                      progress=not no_progress)
+        if report is not None:
+            from codesign_mpm.reports import write_accuracy_report
+
+            typer.echo(str(write_accuracy_report(rows, report)))
+
+    @bench.command("stability")
+    def bench_stability(
+        case: list[str] = typer.Option([], "--case", help="Hard case(s) (default: all; see docs/stability.md)."),
+        quick: bool = typer.Option(False, "--quick", help="Short horizons and fewer settings (seconds per case)."),
+        report: Optional[Path] = typer.Option(None, "--report", help="Also write DIR/stability.md and "
+                                              "DIR/data/stability-SIZE.jsonl."),
+        from_file: Optional[Path] = typer.Option(None, "--from", help="Write the report from these JSON lines."),
+        no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+    ) -> None:
+        """Hard cases run forward and backward at several settings: max |v|, min/max J, energy drift,
+        gradient norms, and any non-finite value or error raised."""
+        import json
+
+        from codesign_mpm.stability import CASES, run_stability_bench
+
+        for name in case:
+            if name not in CASES:
+                raise typer.BadParameter(f"--case {name!r}: choose from {', '.join(CASES)}")
+        size = "quick" if quick else "default"
+        if from_file is not None:
+            rows = [json.loads(line) for line in from_file.read_text().splitlines() if line.strip()]
+        else:
+            rows = run_stability_bench(case or list(CASES), size, lambda r: typer.echo(json.dumps(r)),
+                                       progress=not no_progress)
+        if report is not None:
+            from codesign_mpm.reports import write_stability_report
+
+            typer.echo(str(write_stability_report(rows, report)))
 
     @bench.command("engine")
     def bench_engine(

@@ -5,6 +5,10 @@ import os
 
 import taichi as ti
 
+CACHE_LIMIT_BYTES = 1024**3  # Taichi takes a C int: under 2 GiB
+"""Taichi's default offline cache (100 MiB, least recently used out) holds fewer kernels than the
+test suite and reports compile: at that size a warm run recompiles what the cache evicted."""
+
 _current: tuple[str, str] | None = None
 generation = 0  # bumped on every re-initialisation; simulators built before it are dead
 
@@ -28,6 +32,7 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
         default_fp=ti.f64 if dtype == "float64" else ti.f32,
         default_ip=ti.i32,
         offline_cache=True,
+        offline_cache_max_size_of_files=CACHE_LIMIT_BYTES,
         **({"offline_cache_file_path": cache_dir} if cache_dir else {}),
         log_level=ti.WARN,
     )

@@ -16,6 +16,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from codesign.errors import CodesignError
+from codesign_mpm.quality import QUALITY
 from codesign_mpm.sampling import build_particles
 from codesign_mpm.scene import BodySpec, Scene, SceneError, validate_scene
 
@@ -47,6 +48,14 @@ def load_scene(path: str | Path) -> Scene:
     bodies = data.pop("bodies", [])
     if not isinstance(bodies, list):
         raise SceneFileError(f"{path}: bodies: expected a list of bodies, got {type(bodies).__name__}")
+    if "quality" in data:  # a preset for dx, cfl, dtype and each body's particles_per_cell; explicit keys win
+        name = data.pop("quality")
+        if name not in QUALITY:
+            raise SceneFileError(f"{path}: quality: {name!r} is not a quality preset; allowed: {', '.join(QUALITY)}")
+        preset = QUALITY[name]
+        data = {"dx": preset.dx, "cfl": preset.cfl, "dtype": preset.dtype, **data}
+        bodies = [{"particles_per_cell": preset.particles_per_cell, **body} if isinstance(body, dict) else body
+                  for body in bodies]
     scene = _structured(Scene, data, "", path)
     scene.bodies = [_structured(BodySpec, body, f"bodies[{i}].", path) for i, body in enumerate(bodies)]
     try:

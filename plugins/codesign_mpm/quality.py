@@ -1,0 +1,56 @@
+"""Quality presets: one name for the numerical settings that trade accuracy for time.
+
+`quality: draft | default | paper | reference` in an environment's recipe config (or a scene
+file) sets the grid spacing, particles per cell, CFL number, precision and checkpoint interval
+at once; any of those keys written explicitly overrides the preset. The values were chosen from
+the measured error-against-time fronts of `codesign bench accuracy` (docs/accuracy.md, whose
+preset table is generated from this constant and checked against it by a test).
+
+Light on purpose: recipe validation imports it without Taichi.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Optional
+
+
+@dataclass(frozen=True)
+class Quality:
+    dx: float
+    particles_per_cell: int
+    cfl: float
+    dtype: str
+    checkpoint_every: Optional[int] = None  # substeps between stored states; None: sqrt(T / 2), memory-optimal
+    purpose: str = ""
+
+    def settings(self) -> dict:
+        """The settings a preset sets (its purpose left out)."""
+        return {k: v for k, v in asdict(self).items() if k != "purpose"}
+
+
+QUALITY: dict[str, Quality] = {
+    "draft": Quality(dx=1 / 32, particles_per_cell=8, cfl=0.4, dtype="float32",
+                     purpose="smoke tests, recipe debugging, quick sweeps: on both robots' fronts, where dx 1/24 "
+                             "more than doubles the desert's error; cfl 0.8 blows up far earlier in "
+                             "docs/stability.md"),
+    "default": Quality(dx=1 / 48, particles_per_cell=8, cfl=0.4, dtype="float32",
+                       purpose="the settings every recipe had before presets (kept so that results do not move); "
+                               "day-to-day optimisation at one fixed setting"),
+    "paper": Quality(dx=1 / 96, particles_per_cell=8, cfl=0.4, dtype="float32",
+                     purpose="figures and final numbers: the first setting on the ground robot's front whose "
+                             "distance is within a few tens of percent of the reference"),
+    "reference": Quality(dx=1 / 128, particles_per_cell=27, cfl=0.2, dtype="float64",
+                         purpose="the finest setting measured on ground: the answer the others are compared with"),
+}
+QUALITY_NAMES = tuple(QUALITY)
+
+
+def quality(name: str, key: str = "environment.quality") -> Quality:
+    """The preset called `name`; a `RecipeError` naming `key` and the allowed names otherwise."""
+    if name not in QUALITY:
+        from codesign.errors import RecipeError
+        from codesign.registry import suggest
+
+        raise RecipeError(f"invalid recipe: {key}: {name!r} is not a quality preset; "
+                          f"{suggest(str(name), QUALITY)}allowed: {', '.join(QUALITY)}")
+    return QUALITY[name]
