@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -468,12 +467,10 @@ def measure_one(problem: str, size: str, setting: Setting) -> dict:
 
 
 def _isolated(problem: str, size: str, setting: Setting) -> dict:
-    done = subprocess.run([sys.executable, "-m", "codesign_mpm.accuracy", problem, size, json.dumps(asdict(setting))],
-                          capture_output=True, text=True)
-    if done.returncode:
-        lines = done.stderr.strip().splitlines()
-        return dict(failed=lines[-1] if lines else f"exit status {done.returncode}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    from codesign_mpm.bench import run_module
+
+    record, error = run_module("codesign_mpm.accuracy", problem, size, json.dumps(asdict(setting)))
+    return dict(failed=error) if error else record
 
 
 def relative_error(value, answer) -> float:

@@ -102,12 +102,20 @@ def _machine() -> dict:
     return dict(machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version())
 
 
+def run_module(module: str, *args: str) -> tuple[dict | None, str | None]:
+    """Run `python -m MODULE ARGS` in a fresh process (its own Taichi program and peak memory) and
+    return (the JSON record it printed last, None), or (None, the last line of its error output)."""
+    done = subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True)
+    if done.returncode:
+        lines = done.stderr.strip().splitlines()
+        return None, lines[-1] if lines else f"exit status {done.returncode}"
+    return json.loads(done.stdout.strip().splitlines()[-1]), None
+
+
 def _in_subprocess(*args: str) -> dict:
     """Run `python -m codesign_mpm.bench ARGS` and return its JSON record (or the error line)."""
-    done = subprocess.run([sys.executable, "-m", "codesign_mpm.bench", *args], capture_output=True, text=True)
-    if done.returncode:
-        return dict(error=done.stderr.strip().splitlines()[-1] if done.stderr else "failed")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    record, error = run_module("codesign_mpm.bench", *args)
+    return dict(error=error) if error else record
 
 
 def _run_isolated(kind: str, case: Case, **kwargs) -> dict:

@@ -52,7 +52,21 @@ def codesign_render_run(run_dir: Path, camera: str, fps: int, progress: bool) ->
 
 @hookimpl
 def codesign_cli(app: typer.Typer) -> None:
+    import json
+
     import typer  # already loaded by the CLI
+
+    def _echo_json(record: dict) -> None:
+        typer.echo(json.dumps(record))
+
+    def _measure_or_read(measure, from_file: Optional[Path], report: Optional[Path], write_report) -> None:
+        """Measure (printing JSON lines), or read earlier lines from `from_file`; then write the report."""
+        if from_file is not None:
+            rows = [json.loads(line) for line in from_file.read_text().splitlines() if line.strip()]
+        else:
+            rows = measure()
+        if report is not None:
+            typer.echo(str(write_report(rows, report)))
 
     @app.command()
     def simulate(
@@ -113,8 +127,6 @@ def codesign_cli(app: typer.Typer) -> None:
     ) -> None:
         """Forward throughput of one scene per environment: particle-substeps/s, substeps per
         control step and ms per substep (the old code, paper scale: about 245 ms, 41 substeps)."""
-        import json
-
         from codesign_mpm.bench import ENV_SCALES, run_environment_bench
 
         for s in scale:
@@ -123,7 +135,7 @@ def codesign_cli(app: typer.Typer) -> None:
         for name in env:
             if name not in PRESETS:
                 raise typer.BadParameter(f"--env {name!r}: choose from {', '.join(PRESETS)}")
-        run_environment_bench(scale, env, lambda record: typer.echo(json.dumps(record)),
+        run_environment_bench(scale, env, _echo_json,
                               progress=not no_progress)
 
     @bench.command("accuracy")
@@ -139,23 +151,17 @@ def codesign_cli(app: typer.Typer) -> None:
     ) -> None:
         """Error against wall time and peak memory of reference problems with known or converged answers,
         over dx, particles per cell, cfl, float32/float64 and the checkpoint interval."""
-        import json
-
         from codesign_mpm.accuracy import PROBLEMS, run_accuracy_bench
+        from codesign_mpm.reports import write_accuracy_report
 
         for name in problem:
             if name not in PROBLEMS:
                 raise typer.BadParameter(f"--problem {name!r}: choose from {', '.join(PROBLEMS)}")
-        size = "quick" if quick else "default"
-        if from_file is not None:
-            rows = [json.loads(line) for line in from_file.read_text().splitlines() if line.strip()]
-        else:
-            rows = run_accuracy_bench(problem or list(PROBLEMS), size, lambda r: typer.echo(json.dumps(r)),
-                                      progress=not no_progress)
-        if report is not None:
-            from codesign_mpm.reports import write_accuracy_report
 
-            typer.echo(str(write_accuracy_report(rows, report)))
+        size = "quick" if quick else "default"
+        _measure_or_read(lambda: run_accuracy_bench(problem or list(PROBLEMS), size, _echo_json,
+                                                    progress=not no_progress),
+                         from_file, report, write_accuracy_report)
 
     @bench.command("stability")
     def bench_stability(
@@ -168,23 +174,16 @@ def codesign_cli(app: typer.Typer) -> None:
     ) -> None:
         """Hard cases run forward and backward at several settings: max |v|, min/max J, energy drift,
         gradient norms, and any non-finite value or error raised."""
-        import json
-
+        from codesign_mpm.reports import write_stability_report
         from codesign_mpm.stability import CASES, run_stability_bench
 
         for name in case:
             if name not in CASES:
                 raise typer.BadParameter(f"--case {name!r}: choose from {', '.join(CASES)}")
-        size = "quick" if quick else "default"
-        if from_file is not None:
-            rows = [json.loads(line) for line in from_file.read_text().splitlines() if line.strip()]
-        else:
-            rows = run_stability_bench(case or list(CASES), size, lambda r: typer.echo(json.dumps(r)),
-                                       progress=not no_progress)
-        if report is not None:
-            from codesign_mpm.reports import write_stability_report
 
-            typer.echo(str(write_stability_report(rows, report)))
+        size = "quick" if quick else "default"
+        _measure_or_read(lambda: run_stability_bench(case or list(CASES), size, _echo_json, progress=not no_progress),
+                         from_file, report, write_stability_report)
 
     @bench.command("engine")
     def bench_engine(
@@ -195,12 +194,10 @@ def codesign_cli(app: typer.Typer) -> None:
     ) -> None:
         """Forward particle-substeps/s (float32, float64, dense grid), (forward + backward) / forward
         with checkpointing, peak memory of a differentiable episode, and first-call (compile) time."""
-        import json
-
         from codesign_mpm.bench import SCALES, run_engine_bench
 
         for s in scale:
             if s not in SCALES:
                 raise typer.BadParameter(f"--scale {s!r}: choose from {', '.join(SCALES)}")
-        run_engine_bench(scale, frames, lambda record: typer.echo(json.dumps(record)),
+        run_engine_bench(scale, frames, _echo_json,
                          progress=not no_progress)

@@ -19,7 +19,6 @@ tests/mpm/gradient_checks.py, so their backward kernels compile once per machine
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -255,12 +254,10 @@ def run_case(name: str, size: str, s: Setting) -> dict:
 
 
 def _isolated(name: str, size: str, s: Setting) -> dict:
-    done = subprocess.run([sys.executable, "-m", "codesign_mpm.stability", name, size, json.dumps(asdict(s))],
-                          capture_output=True, text=True)
-    if done.returncode:
-        lines = done.stderr.strip().splitlines()
-        return dict(outcome="crash", message=lines[-1] if lines else f"exit status {done.returncode}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    from codesign_mpm.bench import run_module
+
+    record, error = run_module("codesign_mpm.stability", name, size, json.dumps(asdict(s)))
+    return dict(outcome="crash", message=error) if error else record
 
 
 def run_stability_bench(cases: list[str], size: str, emit, isolate: bool = True,
