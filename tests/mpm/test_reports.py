@@ -1,7 +1,8 @@
 """The quick sizes of `codesign bench accuracy` and `codesign bench stability` run and write their
 reports. The quick sizes are tiny, but each setting starts its own process and compiles (or loads)
-its kernels (a backward pass: minutes cold): the full quick reports are marked slow, a small
-subset (about 20 s warm) runs in the default selection."""
+its kernels (a backward pass: minutes cold). A small subset (about 20 s warm) runs in the default
+selection; the full quick reports are marked `report` and left out of it (every cover material's
+backward kernels compile for about 20 minutes cold): run them with `pytest -m report`."""
 import json
 import math
 
@@ -52,7 +53,7 @@ def test_quick_gradient_accuracy_matches_finite_differences_and_checkpoints_chan
     np.testing.assert_allclose(checkpointed["value"], plain["value"], rtol=1e-9, atol=1e-12)
 
 
-@pytest.mark.slow
+@pytest.mark.report
 def test_quick_accuracy_report_of_every_problem(tmp_path):
     rows = run_accuracy_bench(list(PROBLEMS), "quick", lambda r: None)
     check_accuracy_rows(rows, list(PROBLEMS))
@@ -81,7 +82,7 @@ def test_quick_stability_of_two_cases_writes_a_report(tmp_path):
     assert all(f"## `{c}`" in text for c in cases)
 
 
-@pytest.mark.slow
+@pytest.mark.report
 def test_quick_stability_of_every_case(tmp_path):
     rows = run_stability_bench(list(CASES), "quick", lambda r: None)
     check_stability_rows(rows)
