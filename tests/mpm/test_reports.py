@@ -53,6 +53,7 @@ def test_quick_gradient_accuracy_matches_finite_differences_and_checkpoints_chan
     np.testing.assert_allclose(checkpointed["value"], plain["value"], rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.report
 def test_quick_accuracy_report_of_every_problem(tmp_path):
     rows = run_accuracy_bench(list(PROBLEMS), "quick", lambda r: None)
@@ -82,6 +83,7 @@ def test_quick_stability_of_two_cases_writes_a_report(tmp_path):
     assert all(f"## `{c}`" in text for c in cases)
 
 
+@pytest.mark.slow
 @pytest.mark.report
 def test_quick_stability_of_every_case(tmp_path):
     rows = run_stability_bench(list(CASES), "quick", lambda r: None)
