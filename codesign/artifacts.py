@@ -64,6 +64,54 @@ def play(env: Environment, design: DesignFields | None, controller: Controller, 
     return EpisodeRecord(total, len(actions), np.array(coms).reshape(-1, 3), np.array(actions).reshape(len(actions), -1))
 
 
+def play_population(env: Environment, designs: list[DesignFields | None], controllers: list[Controller],
+                    seed: int | None = None, batch: int = 0) -> list[EpisodeRecord]:
+    """Episodes of (design, controller) pairs without gradients, the same as `play` of each pair.
+
+    Where the environment is `batched`, up to `batch` episodes (0: all) are simulated together
+    in one launch per substep; elsewhere they run one after the other. An episode that ends
+    early is recorded up to its end while the others go on.
+    """
+    if len(designs) != len(controllers):
+        raise ValueError(f"{len(designs)} designs but {len(controllers)} controllers")
+    size = batch or len(designs)
+    if not env.batched or size == 1:
+        return [play(env, design, controller, seed) for design, controller in zip(designs, controllers)]
+    records = []
+    for first in range(0, len(designs), size):
+        group = slice(first, first + size)
+        records += _play_together(env, designs[group], controllers[group], seed)
+    return records
+
+
+def _play_together(env: Environment, designs: list, controllers: list[Controller], seed: int | None
+                   ) -> list[EpisodeRecord]:
+    import torch
+
+    B = len(designs)
+    totals, coms, actions = np.zeros(B), [[] for _ in range(B)], [[] for _ in range(B)]
+    running = np.ones(B, dtype=bool)
+    with torch.no_grad():
+        observations = env.reset_population(designs, seed=seed)
+        for controller in controllers:
+            controller.reset()
+        for t in range(env.horizon):
+            step = np.zeros((B, env.action_dim))
+            for b in np.flatnonzero(running):
+                step[b] = to_numpy(controllers[b](observations[b], t))
+            results = env.step_population(step)
+            for b in np.flatnonzero(running):
+                totals[b] += float(results[b].reward)
+                actions[b].append(step[b])
+                coms[b].append(to_numpy(results[b].info.get("com", np.full(3, np.nan))))
+                observations[b] = results[b].observation
+                running[b] = not results[b].done
+            if not running.any():
+                break
+    return [EpisodeRecord(float(totals[b]), len(actions[b]), np.array(coms[b]).reshape(-1, 3),
+                          np.array(actions[b]).reshape(len(actions[b]), -1)) for b in range(B)]
+
+
 def save_best(run_dir: Path, design: DesignFields, points: np.ndarray, controller: Controller,
               record: EpisodeRecord | None, info: dict) -> None:
     """Write the run's best design, controller and episode (replacing the previous best)."""

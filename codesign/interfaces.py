@@ -84,6 +84,9 @@ class Environment(ABC):
     """Control steps per episode."""
     control_dt: float
     """Simulated seconds between two control steps."""
+    batched: ClassVar[bool] = False
+    """True if the environment simulates a population of episodes together
+    (:meth:`reset_population`, :meth:`step_population`); else they run one at a time."""
 
     @abstractmethod
     def reset(self, design: DesignFields | None = None, seed: int | None = None) -> np.ndarray:
@@ -92,6 +95,15 @@ class Environment(ABC):
     @abstractmethod
     def step(self, action: np.ndarray) -> StepResult:
         """Apply ``action`` (shape ``(action_dim,)``) for one control step."""
+
+    def reset_population(self, designs: list[DesignFields | None], seed: int | None = None) -> list[np.ndarray]:
+        """Start one episode per design (None: the current one), simulated together; return their
+        first observations. Only where :attr:`batched` is true."""
+        raise NotImplementedError(f"{type(self).__name__} simulates one episode at a time")
+
+    def step_population(self, actions: np.ndarray) -> list[StepResult]:
+        """Apply ``actions`` (shape ``(B, action_dim)``, one row per episode) for one control step."""
+        raise NotImplementedError(f"{type(self).__name__} simulates one episode at a time")
 
     def close(self) -> None:
         """Release resources (fields, windows, files); called once at the end of a run."""

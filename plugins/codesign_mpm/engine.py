@@ -189,6 +189,7 @@ class Layout:
     has_terrain: bool
     boundary_cells: int
     requires_grad: bool
+    members: int = 1  # scenes simulated side by side (codesign_mpm.batch); 1: a plain simulator
 
 
 @ti.data_oriented
@@ -212,6 +213,10 @@ class _Storage:
         self.muscle_model = layout.muscle_model
         self.has_terrain = layout.has_terrain
         self.boundary_cells = layout.boundary_cells
+        self.members = layout.members
+        self.batched = layout.members > 1
+        # a batch's member grids lie side by side along x: member b owns nodes [b nx, (b + 1) nx)
+        self.grid_total = (layout.grid_shape[0] * layout.members,) + tuple(layout.grid_shape[1:])
         n, K, gs, grad = layout.capacity, max(layout.n_actuators, 1), layout.grid_shape, layout.requires_grad
         slots, rows = layout.slots, layout.rows
         builder = ti.FieldsBuilder()
@@ -248,9 +253,9 @@ class _Storage:
         self.act = vec(K, (rows,), True)
         self.com_x = vec(3, (rows,), True)
         self.com_v = vec(3, (rows,), True)
-        self.grid_v_in = vec(3, gs, True)
-        self.grid_m = scalar(gs, True)
-        self.grid_v_out = vec(3, gs, True)
+        self.grid_v_in = vec(3, self.grid_total, True)
+        self.grid_m = scalar(self.grid_total, True)
+        self.grid_v_out = vec(3, self.grid_total, True)
         self.height = scalar((gs[0], gs[2]))
         self.normal = vec(3, (gs[0], gs[2]))
         # the node box touched by particles; scalar fields so the reduction stays thread-local
@@ -268,6 +273,11 @@ class _Storage:
             self.tau = mat((n,), True)  # stress of the current substep
             self.frame = mat((n,))  # eigenvectors of b (no gradient)
             self.Jp = scalar((slots, n), True)  # snow's plastic volume ratio
+        if self.batched:  # last, so the fields above keep the ids (and cached kernels) of a plain layout
+            self.member = scalar((n,), dtype=ti.i32)  # which member each particle belongs to
+            self.member_dt = scalar((layout.members,))
+            self.member_substeps = scalar((layout.members,), dtype=ti.i32)  # per control step
+            self.member_speed = scalar((layout.members,))
         self._tree = builder.finalize()
 
     def free(self) -> None:
@@ -344,13 +354,35 @@ class _Storage:
         hi = ti.Vector([self.grid_shape[0] - 3, self.grid_shape[1] - 3, self.grid_shape[2] - 3])
         return ti.min(ti.max(ti.cast(xp / self.dx[None] - 0.5, ti.i32), 0), hi)
 
+    @ti.func
+    def _offset(self, p):
+        """Where particle p's grid starts in the grid fields: member b's nodes are shifted b nx along x."""
+        offset = ti.Vector([0, 0, 0])
+        if ti.static(self.batched):
+            offset[0] = self.member[p] * self.grid_shape[0]
+        return offset
+
+    @ti.func
+    def _dt(self, p):
+        """Particle p's time step: its member's in a batch (members keep their own CFL step)."""
+        dt = self.dt[None]
+        if ti.static(self.batched):
+            dt = self.member_dt[self.member[p]]
+        return dt
+
+    @ti.func
+    def _active(self, p, j):
+        """Whether particle p takes substep j of the control step: a batch runs as many substeps as
+        its most demanding member, and a member with a larger step sits out the last ones."""
+        return j < self.member_substeps[self.member[p]]
+
     @ti.kernel
     def _bounds(self, s: ti.i32, n: ti.i32):
         for d in ti.static(range(3)):
-            self.lo[d][None] = self.grid_shape[d]
+            self.lo[d][None] = self.grid_total[d]
             self.hi[d][None] = 0
         for p in range(n):
-            base = self._base(self.x[s, p])
+            base = self._base(self.x[s, p]) + self._offset(p)
             for d in ti.static(range(3)):
                 ti.atomic_min(self.lo[d][None], base[d])
                 ti.atomic_max(self.hi[d][None], base[d] + 3)
@@ -473,7 +505,7 @@ class _Storage:
     def _constitutive(self, model: ti.template(), p, s, so):
         """(F to store, Kirchhoff stress without muscle) of particle p of `model`, from slot s."""
         C = self.C[s, p]
-        F = (ti.Matrix.identity(float, 3) + self.dt[None] * C) @ self.F[s, p]
+        F = (ti.Matrix.identity(float, 3) + self._dt(p) * C) @ self.F[s, p]
         E, nu = self.E[p], self.nu[p]
         mu = E / (2.0 * (1.0 + nu))
         la = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
@@ -511,7 +543,10 @@ class _Storage:
     def _muscle_stress(self, p, F, t):
         """Kirchhoff stress of particle p's muscle at action row t (materials.MUSCLE_MODELS)."""
         Ff = F @ self.fiber[p]
-        a = self.act[t].dot(self.muscle[p])
+        row = t
+        if ti.static(self.batched):  # forward only: one action row per member
+            row = self.member[p]
+        a = self.act[row].dot(self.muscle[p])
         s = self.muscle_ratio[p] * self.E[p]
         tau = s * a * Ff.outer_product(Ff)
         if ti.static(self.muscle_model == "energy"):
@@ -536,7 +571,7 @@ class _Storage:
     @ti.func
     def _frame(self, s, p):
         """Eigenvectors of the trial b = F F^T of particle p in slot s (cyclic Jacobi)."""
-        F = (ti.Matrix.identity(float, 3) + self.dt[None] * self.C[s, p]) @ self.F[s, p]
+        F = (ti.Matrix.identity(float, 3) + self._dt(p) * self.C[s, p]) @ self.F[s, p]
         A = F @ F.transpose()
         Q = ti.Matrix.identity(float, 3)
         for _ in ti.static(range(JACOBI_SWEEPS)):
@@ -554,43 +589,72 @@ class _Storage:
         for p in range(start, end):
             self.frame[p] = self._frame(s, p)
 
-    @ti.kernel
-    def _constitutive_update(self, model: ti.template(), s: ti.i32, so: ti.i32, start: ti.i32, end: ti.i32):
-        """Scenes with plastic models: F and stress of the particles [start, end) of one model,
-        in their own kernel ahead of p2g (one small kernel per model compiles far faster than
-        all of them fused into the 27-node scatter)."""
-        for p in range(start, end):
-            F, tau = self._constitutive(model, p, s, so)
-            self.F[so, p] = F
-            self.tau[p] = tau
+    @ti.func
+    def _constitutive_particle(self, model: ti.template(), p, s, so):
+        F, tau = self._constitutive(model, p, s, so)
+        self.F[so, p] = F
+        self.tau[p] = tau
 
     @ti.kernel
-    def _p2g(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32):
-        for p in range(n):
-            dt, dx = self.dt[None], self.dx[None]
-            inv_dx = 1.0 / dx
-            base = self._base(self.x[s, p])
-            fx = self.x[s, p] * inv_dx - ti.cast(base, float)
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-            F = ti.Matrix.zero(float, 3, 3)
-            tau = ti.Matrix.zero(float, 3, 3)
-            if ti.static(self.has_params):  # computed by _constitutive_update
-                F = self.F[so, p]
-                tau = self.tau[p]
+    def _constitutive_update(self, model: ti.template(), s: ti.i32, so: ti.i32, start: ti.i32, end: ti.i32,
+                             j: ti.i32):
+        """Scenes with plastic models: F and stress of the particles [start, end) of one model,
+        in their own kernel ahead of p2g (one small kernel per model compiles far faster than
+        all of them fused into the 27-node scatter). `j`: the substep within the control step."""
+        for p in range(start, end):
+            if ti.static(self.batched):
+                if self._active(p, j):
+                    self._constitutive_particle(model, p, s, so)
+                else:
+                    self._hold_deformation(p, s, so)
             else:
-                F, tau = self._update(p, s, so)
-                self.F[so, p] = F
-            if ti.static(self.has_muscles):
-                tau += self._muscle_stress(p, F, t)
-            vol = self.vol[p]
-            mass = self.rho[p] * vol
-            affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * self.C[s, p]
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                offset = ti.Vector([i, j, k])
-                dpos = (ti.cast(offset, float) - fx) * dx
-                weight = w[i][0] * w[j][1] * w[k][2]
-                self.grid_v_in[base + offset] += weight * (mass * self.v[s, p] + affine @ dpos)
-                self.grid_m[base + offset] += weight * mass
+                self._constitutive_particle(model, p, s, so)
+
+    @ti.func
+    def _hold_deformation(self, p, s, so):
+        """A batch member sitting out a substep carries its deformation into the next slot."""
+        self.F[so, p] = self.F[s, p]
+        if ti.static(self.has_jp):
+            self.Jp[so, p] = self.Jp[s, p]
+
+    @ti.func
+    def _p2g_particle(self, p, s, so, t):
+        dt, dx = self._dt(p), self.dx[None]
+        inv_dx = 1.0 / dx
+        base = self._base(self.x[s, p])
+        node = base + self._offset(p)
+        fx = self.x[s, p] * inv_dx - ti.cast(base, float)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        F = ti.Matrix.zero(float, 3, 3)
+        tau = ti.Matrix.zero(float, 3, 3)
+        if ti.static(self.has_params):  # computed by _constitutive_update
+            F = self.F[so, p]
+            tau = self.tau[p]
+        else:
+            F, tau = self._update(p, s, so)
+            self.F[so, p] = F
+        if ti.static(self.has_muscles):
+            tau += self._muscle_stress(p, F, t)
+        vol = self.vol[p]
+        mass = self.rho[p] * vol
+        affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * self.C[s, p]
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            dpos = (ti.cast(offset, float) - fx) * dx
+            weight = w[i][0] * w[j][1] * w[k][2]
+            self.grid_v_in[node + offset] += weight * (mass * self.v[s, p] + affine @ dpos)
+            self.grid_m[node + offset] += weight * mass
+
+    @ti.kernel
+    def _p2g(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32, j: ti.i32):
+        for p in range(n):
+            if ti.static(self.batched):
+                if self._active(p, j):
+                    self._p2g_particle(p, s, so, t)
+                elif ti.static(not self.has_params):  # else _constitutive_update held it
+                    self._hold_deformation(p, s, so)
+            else:
+                self._p2g_particle(p, s, so, t)
 
     @ti.kernel
     def _clear_grid(self):
@@ -613,13 +677,18 @@ class _Storage:
         for I in ti.grouped(ti.ndrange((self.lo[0][None], self.hi[0][None]), (self.lo[1][None], self.hi[1][None]),
                                        (self.lo[2][None], self.hi[2][None]))):
             dt, dx, mu = self.dt[None], self.dx[None], self.friction[None]
+            local = I  # the node's index in its own scene's grid
+            if ti.static(self.batched):
+                member = I[0] // self.grid_shape[0]
+                local[0] -= member * self.grid_shape[0]
+                dt = self.member_dt[member]
             m = self.grid_m[I]
             v = ti.Vector.zero(float, 3)
             if m > MASS_EPS:
                 v = self.grid_v_in[I] / m + dt * self.gravity[None]
                 if ti.static(self.has_terrain):
-                    nrm = self.normal[I[0], I[2]]
-                    if (ti.cast(I[1], float) * dx - self.height[I[0], I[2]]) * nrm[1] < 0:
+                    nrm = self.normal[local[0], local[2]]
+                    if (ti.cast(I[1], float) * dx - self.height[local[0], local[2]]) * nrm[1] < 0:
                         vn = v.dot(nrm)
                         if vn < 0:
                             vt = v - vn * nrm
@@ -631,28 +700,41 @@ class _Storage:
                 # walls: no outward velocity near the domain edge (branch-free: a component assigned
                 # in a branch becomes an uninitialised load in Taichi's reverse mode)
                 top = ti.Vector([self.grid_shape[0], self.grid_shape[1], self.grid_shape[2]]) - 1 - bc
-                blocked = ((I < bc) & (v < 0)) | ((I > top) & (v > 0))
+                blocked = ((local < bc) & (v < 0)) | ((local > top) & (v > 0))
                 v = ti.select(blocked, 0.0, v)
             self.grid_v_out[I] = v
 
+    @ti.func
+    def _g2p_particle(self, p, s, so):
+        dt, inv_dx = self._dt(p), 1.0 / self.dx[None]
+        base = self._base(self.x[s, p])
+        node = base + self._offset(p)
+        fx = self.x[s, p] * inv_dx - ti.cast(base, float)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        new_v = ti.Vector.zero(float, 3)
+        new_C = ti.Matrix.zero(float, 3, 3)
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            g_v = self.grid_v_out[node + offset]
+            weight = w[i][0] * w[j][1] * w[k][2]
+            new_v += weight * g_v
+            new_C += 4.0 * inv_dx * weight * g_v.outer_product(ti.cast(offset, float) - fx)
+        self.v[so, p] = new_v
+        self.C[so, p] = new_C
+        self.x[so, p] = self.x[s, p] + dt * new_v
+
     @ti.kernel
-    def _g2p(self, s: ti.i32, so: ti.i32, n: ti.i32):
+    def _g2p(self, s: ti.i32, so: ti.i32, n: ti.i32, j: ti.i32):
         for p in range(n):
-            dt, inv_dx = self.dt[None], 1.0 / self.dx[None]
-            base = self._base(self.x[s, p])
-            fx = self.x[s, p] * inv_dx - ti.cast(base, float)
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-            new_v = ti.Vector.zero(float, 3)
-            new_C = ti.Matrix.zero(float, 3, 3)
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                offset = ti.Vector([i, j, k])
-                g_v = self.grid_v_out[base + offset]
-                weight = w[i][0] * w[j][1] * w[k][2]
-                new_v += weight * g_v
-                new_C += 4.0 * inv_dx * weight * g_v.outer_product(ti.cast(offset, float) - fx)
-            self.v[so, p] = new_v
-            self.C[so, p] = new_C
-            self.x[so, p] = self.x[s, p] + dt * new_v
+            if ti.static(self.batched):
+                if self._active(p, j):
+                    self._g2p_particle(p, s, so)
+                else:
+                    self.x[so, p] = self.x[s, p]
+                    self.v[so, p] = self.v[s, p]
+                    self.C[so, p] = self.C[s, p]
+            else:
+                self._g2p_particle(p, s, so)
 
     @ti.kernel
     def _probe(self, s: ti.i32, t: ti.i32, n: ti.i32):
@@ -678,6 +760,9 @@ class _Storage:
         self.n_bad[None] = 0
         self.first_bad[None] = n
         self.max_speed[None] = 0.0
+        if ti.static(self.batched):
+            for b in range(self.members):
+                self.member_speed[b] = 0.0
         for p in range(n):
             x, v, F = self.x[s, p], self.v[s, p], self.F[s, p]
             size = self.dx[None] * ti.Vector([self.grid_shape[0] - 1, self.grid_shape[1] - 1,
@@ -688,6 +773,8 @@ class _Storage:
                 self.n_bad[None] += 1
                 ti.atomic_min(self.first_bad[None], p)
             ti.atomic_max(self.max_speed[None], v.norm())
+            if ti.static(self.batched):
+                ti.atomic_max(self.member_speed[self.member[p]], v.norm())
 
 
 
@@ -760,7 +847,7 @@ class Simulator:
         self.max_frames = max_frames
         self.segment = checkpoint_every or max(1, math.ceil(math.sqrt(max_frames * self.timestep.substeps / 2)))
         self.body_names = [b.name for b in scene.bodies]
-        self.layout = Layout(
+        self.layout = self._layout(Layout(
             capacity=-(-max(particles.n, capacity or 0) // CAPACITY_STEP) * CAPACITY_STEP,
             n_actuators=particles.n_actuators,
             slots=self.segment + 1 if requires_grad else 2,
@@ -772,7 +859,7 @@ class Simulator:
             has_terrain=scene.terrain.kind != "none",
             boundary_cells=scene.boundary_cells,
             requires_grad=requires_grad,
-        )
+        ))
         self.k = _acquire(self.layout)
         self._generation = runtime.generation
         self._finalizer = weakref.finalize(self, _release, self._generation, self.k)
@@ -783,6 +870,10 @@ class Simulator:
         self._rollout_changes = -1
         self._set_constants()
         self.reset(particles)
+
+    def _layout(self, layout: Layout) -> Layout:
+        """The storage layout to compile for (a batch adjusts the plain one)."""
+        return layout
 
     def close(self) -> None:
         """Hand the compiled storage back for reuse; the simulator is unusable afterwards."""
@@ -943,12 +1034,13 @@ class Simulator:
                                "was built; build a new Simulator")
 
     # ------------------------------------------------------------------ stepping
-    def _substep(self, s: int, so: int, t: int) -> None:
-        """One substep from slot s into slot so, holding action row t."""
-        self._grid_update(s, so, t)
-        self.k._g2p(s, so, self.n)
+    def _substep(self, s: int, so: int, t: int, j: int = 0) -> None:
+        """One substep from slot s into slot so, holding action row t; j: the substep's index within
+        its control step (a batch member whose step is larger sits out the last ones)."""
+        self._grid_update(s, so, t, j)
+        self.k._g2p(s, so, self.n, j)
 
-    def _grid_update(self, s: int, so: int, t: int) -> None:
+    def _grid_update(self, s: int, so: int, t: int, j: int = 0) -> None:
         if self.scene.grid_region == "full":
             for d in range(3):
                 self.k.lo[d][None] = 0
@@ -959,21 +1051,21 @@ class Simulator:
         for model, start, end in self._runs if self.k.has_params else ():
             if model in HENCKY_PLASTIC:
                 self.k._eigen_frames(s, start, end)
-            self.k._constitutive_update(model, s, so, start, end)
-        self.k._p2g(s, so, t, self.n)
+            self.k._constitutive_update(model, s, so, start, end, j)
+        self.k._p2g(s, so, t, self.n, j)
         self.k._grid_op()
 
     def _substep_grad(self, s: int, t: int) -> None:
         """Reverse of substep s -> s + 1: recompute its grid, then the adjoint kernels."""
         self._grid_update(s, s + 1, t)
         self.k._clear_grid_grad()
-        self.k._g2p.grad(s, s + 1, self.n)
+        self.k._g2p.grad(s, s + 1, self.n, 0)
         self.k._grid_op.grad()
         if self.k.has_params:
             self.k.tau.grad.fill(0)
-        self.k._p2g.grad(s, s + 1, t, self.n)
+        self.k._p2g.grad(s, s + 1, t, self.n, 0)
         for model, start, end in self._runs if self.k.has_params else ():
-            self.k._constitutive_update.grad(model, s, s + 1, start, end)
+            self.k._constitutive_update.grad(model, s, s + 1, start, end, 0)
 
     def _guard(self, slot: int, substep: int) -> None:
         """Stop with a clear error if the state went non-finite, left the grid or broke CFL."""
@@ -982,19 +1074,27 @@ class Simulator:
         if bad:
             self._raise_at(self.k.first_bad[None], slot, substep,
                            f"{bad} particle(s) non-finite or outside the domain")
-        if self.k.max_speed[None] * self.timestep.dt > self.scene.dx:
-            raise SimulationError(
-                f"at substep {substep} (frame {substep // self.timestep.substeps}) a particle moves "
-                f"{self.k.max_speed[None] * self.timestep.dt / self.scene.dx:.2f} cells per substep "
-                f"(speed {self.k.max_speed[None]:.4g}): the time step is too large for this motion; "
-                "lower scene.cfl or scene.dt")
+        for speed, dt, where in self._speeds():
+            if speed * dt > self.scene.dx:
+                raise SimulationError(
+                    f"at substep {substep} (frame {substep // self.timestep.substeps}) a particle{where} moves "
+                    f"{speed * dt / self.scene.dx:.2f} cells per substep (speed {speed:.4g}): the time step is "
+                    "too large for this motion; lower scene.cfl or scene.dt")
+
+    def _speeds(self) -> list[tuple[float, float, str]]:
+        """(fastest particle speed, its time step, where) after `_check`, per independent scene."""
+        return [(self.k.max_speed[None], self.timestep.dt, "")]
+
+    def _where(self, p: int) -> str:
+        """Particle p as the error messages name it."""
+        return f"particle {p}"
 
     def _raise_at(self, p: int, slot: int, substep: int, what: str) -> None:
         body = int(self.particles.body[p])
         model = MODEL_NAMES[int(self.particles.material[p])]
         x = self.particles_state(slot)[0][p]
         raise SimulationError(
-            f"{what} at substep {substep} (frame {substep // self.timestep.substeps}); first: particle {p} "
+            f"{what} at substep {substep} (frame {substep // self.timestep.substeps}); first: {self._where(p)} "
             f"of body '{self.body_names[body]}' ({model}) at x={np.round(x, 5).tolist()}")
 
     def step(self, action: np.ndarray | None = None, frames: int = 1) -> None:
@@ -1007,8 +1107,8 @@ class Simulator:
             self._slot = 0
         spf = self.timestep.substeps
         for _ in range(frames):
-            for _ in range(spf):
-                self._substep(self._slot, 1 - self._slot, 0)
+            for j in range(spf):
+                self._substep(self._slot, 1 - self._slot, 0, j)
                 self._slot = 1 - self._slot
             self.frame += 1
             self._guard(self._slot, self.frame * spf)

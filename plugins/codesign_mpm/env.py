@@ -10,7 +10,7 @@ observations and rewards.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -21,6 +21,7 @@ import torch
 from codesign.errors import RecipeError
 from codesign.interfaces import Controller, DesignFields, DesignSpace, Environment, StepResult
 from codesign.registry import suggest
+from codesign_mpm.batch import BatchSimulator
 from codesign_mpm.config import CoverConfig, EnvironmentPreset, LocomotionConfig, RobotConfig, TaskConfig
 from codesign_mpm.engine import Simulator
 from codesign_mpm.observations import Observer
@@ -150,6 +151,17 @@ def _numpy(value: Any) -> np.ndarray:
     return np.asarray(value, dtype=np.float64)
 
 
+@dataclass
+class EpisodeState:
+    """What one running episode's observations and rewards need besides the particles."""
+
+    task: Task
+    observer: Observer
+    n_robot: int  # the design's robot particles come first
+    mass: torch.Tensor  # (n_robot,)
+    muscle: torch.Tensor  # (n_robot, K)
+
+
 class LocomotionEnv(Environment):
     """A robot and a task (codesign_mpm.tasks) on an environment preset.
 
@@ -161,7 +173,12 @@ class LocomotionEnv(Environment):
     `base_particles` is the robot's whole workspace; each design keeps, weighs and stiffens a
     subset. `cover_particles` (the ground cover, possibly none) follow the robot's in the
     simulator and are the same for every design.
+
+    A population of episodes (`reset_population`, `step_population`) is simulated in one
+    `BatchSimulator`, each episode with its own task state.
     """
+
+    batched = True
 
     def __init__(self, config: LocomotionConfig, preset: EnvironmentPreset) -> None:
         _check_config(config)
@@ -191,7 +208,11 @@ class LocomotionEnv(Environment):
                          else np.tile(np.eye(3), (self.cover_particles.n, 1, 1)))
         self.sim: Simulator | None = None
         self._grad_sim: Simulator | None = None
+        self._batch: BatchSimulator | None = None
+        self._episode: EpisodeState | None = None
+        self._population: list[EpisodeState] = []
         self.t = 0
+        self.population_t = 0
 
     @property
     def observation_space(self):
@@ -229,8 +250,37 @@ class LocomotionEnv(Environment):
             self.sim.reset(particles)
         self.sim.set_initial_state(F=self.initial_deformation(particles))
         self.t = 0
-        self._start_task(particles)
-        return self._observe()[0]
+        self._episode = self._start_task(particles)
+        return self._observe(self._episode, 0, self.sim.particles_state())[0]
+
+    def reset_population(self, designs: list[DesignFields | None], seed: int | None = None) -> list[np.ndarray]:
+        """Start one episode per design (None: the current design), all in one batched simulator."""
+        members = [self.particles if design is None else self.design_particles(design) for design in designs]
+        if self._batch is None or self._batch.counts != [m.n for m in members]:
+            if self._batch is not None:
+                self._batch.close()
+            self._batch = BatchSimulator(self.scene, members, capacity=self.capacity)
+        else:
+            self._batch.reset_members(members)
+        self._batch.set_initial_state(F=np.concatenate([self.initial_deformation(m) for m in members]))
+        self.population_t = 0
+        self._population = []
+        for member in members:
+            task = make_task(self.config.task)
+            self._population.append(self._start_task(member, task, replace(self.observer, task=task)))
+        return [self._observe(episode, 0, state)[0] for episode, state in zip(self._population, self._member_states())]
+
+    def step_population(self, actions: np.ndarray) -> list[StepResult]:
+        if self._batch is None:
+            raise RuntimeError("call reset_population() before step_population()")
+        self._batch.step(_numpy(actions))
+        self.population_t += 1
+        return [self._result(episode, self.population_t, state)
+                for episode, state in zip(self._population, self._member_states())]
+
+    def _member_states(self) -> list[tuple[np.ndarray, ...]]:
+        """(x, v, C, F) of each member of the batch."""
+        return list(zip(*(self._batch.split(a) for a in self._batch.particles_state())))
 
     @property
     def capacity(self) -> int:
@@ -242,31 +292,38 @@ class LocomotionEnv(Environment):
         robot = np.tile(np.eye(3), (int(particles.robot.sum()), 1, 1))
         return np.concatenate([robot, self._cover_F])
 
-    def _start_task(self, particles: Particles) -> None:
+    def _start_task(self, particles: Particles, task: Task | None = None, observer: Observer | None = None
+                    ) -> EpisodeState:
+        """Start `task` (default: the environment's own, observed by its observer) for a design's particles."""
+        task, observer = task or self.task, observer or self.observer
         robot = particles.robot
-        self._n_robot = int(robot.sum())
-        self._mass = torch.as_tensor(particles.volume[robot] * particles.density[robot])
-        self._muscle = torch.as_tensor(particles.muscle[robot])
+        mass = torch.as_tensor(particles.volume[robot] * particles.density[robot])
         rest = particles.x[robot]
-        com = (self._mass.numpy() @ rest) / self._mass.sum().item()
-        self.task.start(TaskContext(rest_x=rest, start_com=com, control_dt=self.control_dt, horizon=self.horizon))
+        com = (mass.numpy() @ rest) / mass.sum().item()
+        task.start(TaskContext(rest_x=rest, start_com=com, control_dt=self.control_dt, horizon=self.horizon))
+        return EpisodeState(task, observer, int(robot.sum()), mass, torch.as_tensor(particles.muscle[robot]))
 
     def step(self, action: np.ndarray) -> StepResult:
         if self.sim is None:
             raise RuntimeError("call reset() before step()")
         self.sim.step(_numpy(action))
         self.t += 1
-        observation, frame = self._observe()
-        reward = float(self.task.reward(frame))
-        return StepResult(observation, reward, self.t >= self.horizon, {"com": frame.com_x.numpy().copy()})
+        return self._result(self._episode, self.t, self.sim.particles_state())
 
-    def _observe(self) -> tuple[np.ndarray, RobotFrame]:
-        """(observation before the next step, the robot's frame after the last); robot particles come first."""
-        x, v, _, F = (torch.as_tensor(a[:self._n_robot], dtype=torch.float64) for a in self.sim.particles_state())
-        cover_x = self.sim.particles_state()[0][self._n_robot:] if self.config.observation.occupancy else None
-        observation = self.observer(self.t, x, v, self._mass, self._muscle, cover_x)
-        w = self._mass / self._mass.sum()
-        frame = RobotFrame(self.t, self.t * self.control_dt, w @ x, w @ v, self._mass, x, v, F)
+    def _result(self, episode: EpisodeState, t: int, state: tuple[np.ndarray, ...]) -> StepResult:
+        observation, frame = self._observe(episode, t, state)
+        reward = float(episode.task.reward(frame))
+        return StepResult(observation, reward, t >= self.horizon, {"com": frame.com_x.numpy().copy()})
+
+    def _observe(self, episode: EpisodeState, t: int, state: tuple[np.ndarray, ...]) -> tuple[np.ndarray, RobotFrame]:
+        """(observation before step t + 1, the robot's frame after step t) from the particles'
+        (x, v, C, F); robot particles come first."""
+        n = episode.n_robot
+        x, v, F = (torch.as_tensor(state[i][:n], dtype=torch.float64) for i in (0, 1, 3))
+        cover_x = state[0][n:] if self.config.observation.occupancy else None
+        observation = episode.observer(t, x, v, episode.mass, episode.muscle, cover_x)
+        w = episode.mass / episode.mass.sum()
+        frame = RobotFrame(t, t * self.control_dt, w @ x, w @ v, episode.mass, x, v, F)
         return observation.numpy().astype(np.float64), frame
 
     def differentiable_episode(self, design: DesignFields, controller: Controller,
@@ -290,7 +347,7 @@ class LocomotionEnv(Environment):
         return self._grad_sim
 
     def close(self) -> None:
-        for sim in (self.sim, self._grad_sim):
+        for sim in (self.sim, self._grad_sim, self._batch):
             if sim is not None:
                 sim.close()
-        self.sim = self._grad_sim = None
+        self.sim = self._grad_sim = self._batch = None

@@ -69,9 +69,9 @@ def run_episode(env: LocomotionEnv, design: DesignFields, controller: Controller
     particles, inputs = design_inputs(env, design)
     volume, stiffness, muscle, fiber = inputs
     sim = env.grad_simulator(particles)
-    env._start_task(particles)
+    n = env._start_task(particles).n_robot
     controller.reset()
-    n, dt, T = env._n_robot, env.control_dt, env.horizon
+    dt, T = env.control_dt, env.horizon
     density = torch.as_tensor(particles.density[:n], dtype=DTYPE)
     mass = volume[:n] * density  # differentiable in the occupancy
     weights = mass / mass.sum()

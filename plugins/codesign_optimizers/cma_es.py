@@ -9,16 +9,16 @@ import numpy as np
 import torch
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
-from codesign.artifacts import play
+from codesign.artifacts import play_population
 from codesign.errors import RecipeError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
-from codesign_optimizers.common import BestKeeper, parameter_groups
+from codesign_optimizers.common import BestKeeper, candidate, parameter_groups
 from codesign_optimizers.config import CMAESConfig
 
 
 class CMAES(Optimizer):
-    """One generation per iteration: ask `population` candidates, play one episode each (one after
-    the other in this process, so the simulator's kernels compile once), tell CMA their returns.
+    """One generation per iteration: ask `population` candidates, play one episode each (together,
+    `batch` at a time, where the environment batches; else one after the other), tell CMA their returns.
     All candidates of a generation play with the same episode seed (common random numbers), so
     a random environment ranks them by their parameters, not by their luck.
 
@@ -47,21 +47,15 @@ class CMAES(Optimizer):
         self.best = BestKeeper(environment, controller, run_dir)
         self.generation = 0
 
-    def _evaluate(self, x: np.ndarray, seed: int) -> tuple[float, object, object]:
-        with torch.no_grad():
-            vector_to_parameters(torch.as_tensor(x, dtype=self.params[0].dtype), self.params)
-        design = self.representation()
-        record = play(self.environment, design, self.controller, seed=seed)
-        return record.episode_return, design, record
-
     def step(self) -> dict[str, float]:
         candidates = self.es.ask()
         seed = int(self.rng.integers(2**31))  # one episode seed per generation: candidates compare on equal terms
-        returns = []
-        for x in candidates:
-            episode_return, design, record = self._evaluate(x, seed)
-            returns.append(episode_return)
-            self.best.offer(episode_return, design, record, self.generation)
+        pairs = [candidate(self.representation, self.controller, self.params, x) for x in candidates]
+        records = play_population(self.environment, [d for d, _ in pairs], [c for _, c in pairs], seed,
+                                  self.config.batch)
+        returns = [record.episode_return for record in records]
+        for (design, controller), record in zip(pairs, records):
+            self.best.offer(record.episode_return, design, record, self.generation, controller)
         self.es.tell(candidates, [-r for r in returns])  # cma minimises
         with torch.no_grad():  # leave the parts at the distribution's mean
             vector_to_parameters(torch.as_tensor(self.es.mean, dtype=self.params[0].dtype), self.params)

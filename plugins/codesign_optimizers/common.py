@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 
+import numpy as np
 import torch
+from torch.nn.utils import vector_to_parameters
 
-from codesign.artifacts import EpisodeRecord, save_best
+from codesign.artifacts import EpisodeRecord, save_best, to_numpy
 from codesign.errors import RecipeError
 from codesign.interfaces import Controller, DesignFields, Environment, Representation
 
@@ -36,12 +39,26 @@ class BestKeeper:
         self.environment, self.controller, self.run_dir = environment, controller, run_dir
         self.best_return = -math.inf
 
-    def offer(self, episode_return: float, design: DesignFields, record: EpisodeRecord | None, iteration: int) -> bool:
-        """Keep this episode if it beats the best so far (call before the parameters change)."""
+    def offer(self, episode_return: float, design: DesignFields, record: EpisodeRecord | None, iteration: int,
+              controller: Controller | None = None) -> bool:
+        """Keep this episode if it beats the best so far: its `controller` (default: the shared one,
+        so call before its parameters change) and design."""
         if not episode_return > self.best_return:
             return False
         self.best_return = episode_return
         if self.run_dir is not None:
-            save_best(Path(self.run_dir), design, self.environment.design_space.points, self.controller, record,
-                      {"iteration": iteration, "episode_return": episode_return})
+            save_best(Path(self.run_dir), design, self.environment.design_space.points, controller or self.controller,
+                      record, {"iteration": iteration, "episode_return": episode_return})
         return True
+
+
+def candidate(representation: Representation, controller: Controller, params: list[torch.Tensor],
+              x: np.ndarray | None) -> tuple[DesignFields, Controller]:
+    """The design and a copy of the controller with the flat parameter vector `x` (None: nothing)
+    loaded into `params`; both stay as they are when the parameters change for the next candidate."""
+    with torch.no_grad():
+        if x is not None:
+            vector_to_parameters(torch.as_tensor(x, dtype=params[0].dtype), params)
+        design = representation()
+    frozen = DesignFields(**{name: to_numpy(getattr(design, name)).copy() for name in DesignFields.__dataclass_fields__})
+    return frozen, copy.deepcopy(controller)

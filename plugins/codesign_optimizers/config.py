@@ -28,6 +28,9 @@ class CMAESConfig:
     sigma0: float = field(default=0.1, metadata={"gt": 0, "help": "initial step size"})
     lower: Optional[float] = field(default=None, metadata={"help": "lower bound on every parameter (null: none)"})
     upper: Optional[float] = field(default=None, metadata={"help": "upper bound on every parameter (null: none)"})
+    batch: int = field(default=0, metadata={
+        "ge": 0, "help": "episodes simulated together where the environment can batch them (0: the whole "
+                         "population; 1: one at a time)"})
 
 
 @dataclass
@@ -64,6 +67,9 @@ class CPPNNEATConfig:
     generations: int = field(default=100, metadata={"ge": 1})
     population: int = field(default=10, metadata={"ge": 2, "help": "NEAT's pop_size, also CMA-ES's popsize"})
     sigma0: float = field(default=0.1, metadata={"gt": 0, "help": "CMA-ES initial step size on the controller"})
+    batch: int = field(default=0, metadata={
+        "ge": 0, "help": "episodes simulated together where the environment can batch them (0: the whole "
+                         "population; 1: one at a time)"})
     compatibility_threshold: float = field(default=3.0, metadata={
         "gt": 0, "help": "genomic distance under which two genomes share a species"})
     elitism: int = field(default=1, metadata={"ge": 0, "help": "best genomes of each species kept unchanged"})

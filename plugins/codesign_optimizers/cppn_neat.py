@@ -13,10 +13,10 @@ import numpy as np
 import torch
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
-from codesign.artifacts import BEST, play
+from codesign.artifacts import BEST, play_population
 from codesign.errors import RecipeError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
-from codesign_optimizers.common import BestKeeper, parameter_groups
+from codesign_optimizers.common import BestKeeper, candidate, parameter_groups
 from codesign_optimizers.config import CPPNNEATConfig
 
 NEAT_CONFIG_FILE = "neat.ini"
@@ -87,20 +87,19 @@ class CPPNNEAT(Optimizer):
         """neat-python's fitness function: play each (genome, controller candidate) pair once."""
         seed = int(self.rng.integers(2**31))
         candidates = self.es.ask(len(genomes)) if self.es is not None else None
-        returns: list[float | None] = []
+        pairs = {}  # genome index -> (design, controller) of the valid bodies
         for i, (_, genome) in enumerate(genomes):
             self.representation.set_genome(genome, neat_config.genome_config)
-            if candidates is not None:
-                with torch.no_grad():
-                    vector_to_parameters(torch.as_tensor(candidates[i], dtype=self.params[0].dtype), self.params)
-            if not self.representation.valid:
-                returns.append(None)
-                continue
-            design = self.representation()
-            record = play(self.environment, design, self.controller, seed=seed)
-            returns.append(record.episode_return)
-            if self.best.offer(record.episode_return, design, record, self.population.generation):
-                (self.run_dir / BEST / GENOME_FILE).write_bytes(pickle.dumps(genome))
+            if self.representation.valid:
+                pairs[i] = candidate(self.representation, self.controller, self.params,
+                                     None if candidates is None else candidates[i])
+        records = play_population(self.environment, [d for d, _ in pairs.values()], [c for _, c in pairs.values()],
+                                  seed, self.config.batch)
+        returns: list[float | None] = [None] * len(genomes)
+        for (i, (design, controller)), record in zip(pairs.items(), records):
+            returns[i] = record.episode_return
+            if self.best.offer(record.episode_return, design, record, self.population.generation, controller):
+                (self.run_dir / BEST / GENOME_FILE).write_bytes(pickle.dumps(genomes[i][1]))
         valid = [r for r in returns if r is not None]
         floor = min(valid) - 1.0 if valid else 0.0  # invalid bodies rank below every valid one
         fitness = [r if r is not None else floor for r in returns]

@@ -32,4 +32,5 @@ def test_cppn_neat_improves_on_its_first_population_and_its_best_replays(seed, t
     assert np.mean([r["mean_return"] for r in rows[-4:]]) > rows[0]["mean_return"] + 0.05
     info = json.loads((run_dir / "best" / "info.json").read_text())
     assert info["episode_return"] == rows[-1]["best_return"] and (run_dir / "best" / "genome.pkl").exists()
-    assert runner.evaluate_best(run_dir) == pytest.approx([info["episode_return"]], abs=1e-9)  # deterministic task
+    # deterministic task; the generation played in one batch, which sums atomics in another order (float32)
+    assert runner.evaluate_best(run_dir) == pytest.approx([info["episode_return"]], rel=1e-4)
