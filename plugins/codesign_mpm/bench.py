@@ -22,6 +22,8 @@ SCALES = {
     "paper": dict(dx=1 / 128, robot=[0.25, 0.12, 0.12], terrain=0.05),
     # a CPU-friendly default: about 7.7k particles, dx 1/64
     "small": dict(dx=1 / 64, robot=[0.25, 0.12, 0.12], terrain=0.1),
+    # the quick start's size: about 1k particles, dx 1/32 (populations of small scenes)
+    "tiny": dict(dx=1 / 32, robot=[0.25, 0.12, 0.12], terrain=0.1),
 }
 
 
@@ -98,6 +100,42 @@ def measure_backward(case: Case, frames: int = 200, repeats: int = 1) -> dict:
                 peak_rss_mb=round(_peak_rss_mb(), 1))
 
 
+def measure_batch(case: Case, members: int = 8, frames: int = 5, repeats: int = 5) -> dict:
+    """Throughput of `members` episodes in one BatchSimulator against the same episodes one after
+    the other in one Simulator (reset between them, as `play` does), timed alternately."""
+    from codesign_mpm import build_particles
+    from codesign_mpm.batch import BatchSimulator
+    from codesign_mpm.engine import Simulator
+
+    scene = robot_scene(case)
+    particles = build_particles(scene)
+    batch = BatchSimulator(scene, [particles] * members)
+    alone = Simulator(scene, particles)
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-0.3, 0.3, (frames, members, particles.n_actuators))
+    batch.step(actions[0])  # compile (or load from the offline cache)
+    alone.step(actions[0, 0])
+    together, sequential = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        batch.reset()
+        for a in actions:
+            batch.step(a)
+        together.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        for b in range(members):
+            alone.reset()
+            for a in actions:
+                alone.step(a[b])
+        sequential.append(time.perf_counter() - t0)
+    work = members * particles.n * frames * alone.timestep.substeps
+    return dict(measure="batch", members=members, particles_per_member=particles.n,
+                substeps_per_frame=alone.timestep.substeps, frames=frames,
+                batch_particle_substeps_per_s=work / float(np.median(together)),
+                sequential_particle_substeps_per_s=work / float(np.median(sequential)),
+                speedup=float(np.median(np.asarray(sequential) / np.asarray(together))))
+
+
 def _machine() -> dict:
     return dict(machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version())
 
@@ -127,7 +165,7 @@ def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True
     from codesign.progress import progress_bar
 
     machine = _machine()
-    with progress_bar(total=4 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
+    with progress_bar(total=5 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
         for scale in scales:
             for case in (Case(scale, "float32"), Case(scale, "float64"), Case(scale, "float32", "full")):
                 emit(dict(scale=scale, dtype=case.dtype, grid_region=case.grid_region,
@@ -135,6 +173,8 @@ def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True
                 bar.update(1)
             case = Case(scale, "float32")
             emit(dict(scale=scale, dtype="float32", **_run_isolated("backward", case, frames=frames), **machine))
+            bar.update(1)
+            emit(dict(scale=scale, dtype="float32", **_run_isolated("batch", case), **machine))
             bar.update(1)
 
 
@@ -222,5 +262,5 @@ if __name__ == "__main__":  # one isolated measurement, used by _run_isolated / 
         print(json.dumps(measure_environment(sys.argv[2], sys.argv[3])))
     else:
         kind, scale, dtype, region, kwargs = sys.argv[1:6]
-        measure = {"forward": measure_forward, "backward": measure_backward}[kind]
+        measure = {"forward": measure_forward, "backward": measure_backward, "batch": measure_batch}[kind]
         print(json.dumps(measure(Case(scale, dtype, region), **json.loads(kwargs))))

@@ -208,6 +208,10 @@ class _Storage:
         self.grid_shape = layout.grid_shape
         self.models = layout.models
         self.has_params = any(MATERIALS[MODEL_NAMES[m]].plastic for m in layout.models)
+        # the stress in kernels of its own ahead of p2g: plastic models (one small kernel per model
+        # compiles far faster than all of them fused into the scatter) and every differentiable
+        # layout (p2g's adjoint is then the scatter's alone, differentiated plane by plane)
+        self.separate_stress = self.has_params or layout.requires_grad
         self.has_jp = ID["snow"] in layout.models  # snow's plastic volume ratio is part of the state
         self.has_muscles = layout.has_muscles
         self.muscle_model = layout.muscle_model
@@ -270,7 +274,9 @@ class _Storage:
         self.max_speed = scalar(())
         if self.has_params:  # every non-elastic scene gets the same fields, so they share compiled kernels
             self.params = vec(N_PARAMS, (n,))
-            self.tau = mat((n,), True)  # stress of the current substep
+        if self.separate_stress:
+            self.tau = mat((n,), True)  # stress of the current substep, muscle included
+        if self.has_params:
             self.frame = mat((n,))  # eigenvectors of b (no gradient)
             self.Jp = scalar((slots, n), True)  # snow's plastic volume ratio
         if self.batched:  # last, so the fields above keep the ids (and cached kernels) of a plain layout
@@ -590,25 +596,27 @@ class _Storage:
             self.frame[p] = self._frame(s, p)
 
     @ti.func
-    def _constitutive_particle(self, model: ti.template(), p, s, so):
+    def _constitutive_particle(self, model: ti.template(), p, s, so, t):
         F, tau = self._constitutive(model, p, s, so)
+        if ti.static(self.has_muscles):
+            tau += self._muscle_stress(p, F, t)
         self.F[so, p] = F
         self.tau[p] = tau
 
     @ti.kernel
-    def _constitutive_update(self, model: ti.template(), s: ti.i32, so: ti.i32, start: ti.i32, end: ti.i32,
-                             j: ti.i32):
+    def _constitutive_update(self, model: ti.template(), s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32,
+                             end: ti.i32, j: ti.i32):
         """Scenes with plastic models: F and stress of the particles [start, end) of one model,
         in their own kernel ahead of p2g (one small kernel per model compiles far faster than
         all of them fused into the 27-node scatter). `j`: the substep within the control step."""
         for p in range(start, end):
             if ti.static(self.batched):
                 if self._active(p, j):
-                    self._constitutive_particle(model, p, s, so)
+                    self._constitutive_particle(model, p, s, so, t)
                 else:
                     self._hold_deformation(p, s, so)
             else:
-                self._constitutive_particle(model, p, s, so)
+                self._constitutive_particle(model, p, s, so, t)
 
     @ti.func
     def _hold_deformation(self, p, s, so):
@@ -618,7 +626,9 @@ class _Storage:
             self.Jp[so, p] = self.Jp[s, p]
 
     @ti.func
-    def _p2g_particle(self, p, s, so, t):
+    def _p2g_particle(self, p, s, so, t, planes: ti.template()):
+        """Scatter particle p's momentum, mass and MLS force to the stencil's nodes in the planes
+        i in `planes` (all three in the forward pass)."""
         dt, dx = self._dt(p), self.dx[None]
         inv_dx = 1.0 / dx
         base = self._base(self.x[s, p])
@@ -627,34 +637,42 @@ class _Storage:
         w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
         F = ti.Matrix.zero(float, 3, 3)
         tau = ti.Matrix.zero(float, 3, 3)
-        if ti.static(self.has_params):  # computed by _constitutive_update
-            F = self.F[so, p]
+        if ti.static(self.separate_stress):  # computed by _constitutive_update, muscle included
             tau = self.tau[p]
         else:
             F, tau = self._update(p, s, so)
             self.F[so, p] = F
-        if ti.static(self.has_muscles):
-            tau += self._muscle_stress(p, F, t)
+            if ti.static(self.has_muscles):
+                tau += self._muscle_stress(p, F, t)
         vol = self.vol[p]
         mass = self.rho[p] * vol
         affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * self.C[s, p]
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            offset = ti.Vector([i, j, k])
-            dpos = (ti.cast(offset, float) - fx) * dx
-            weight = w[i][0] * w[j][1] * w[k][2]
-            self.grid_v_in[node + offset] += weight * (mass * self.v[s, p] + affine @ dpos)
-            self.grid_m[node + offset] += weight * mass
+            if ti.static(i in planes):
+                offset = ti.Vector([i, j, k])
+                dpos = (ti.cast(offset, float) - fx) * dx
+                weight = w[i][0] * w[j][1] * w[k][2]
+                self.grid_v_in[node + offset] += weight * (mass * self.v[s, p] + affine @ dpos)
+                self.grid_m[node + offset] += weight * mass
 
     @ti.kernel
     def _p2g(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32, j: ti.i32):
         for p in range(n):
             if ti.static(self.batched):
                 if self._active(p, j):
-                    self._p2g_particle(p, s, so, t)
-                elif ti.static(not self.has_params):  # else _constitutive_update held it
+                    self._p2g_particle(p, s, so, t, (0, 1, 2))
+                elif ti.static(not self.separate_stress):  # else _constitutive_update held it
                     self._hold_deformation(p, s, so)
             else:
-                self._p2g_particle(p, s, so, t)
+                self._p2g_particle(p, s, so, t, (0, 1, 2))
+
+    @ti.kernel
+    def _p2g_plane(self, s: ti.i32, n: ti.i32, plane: ti.template()):
+        """p2g's scatter to the stencil's plane i = `plane` alone, for differentiable layouts: only its
+        adjoint runs (p2g's adjoint is the sum of the three planes'), and three adjoint kernels of 9
+        nodes compile about three times faster than one of 27 (Taichi's passes grow with size squared)."""
+        for p in range(n):
+            self._p2g_particle(p, s, s + 1, 0, (plane,))
 
     @ti.kernel
     def _clear_grid(self):
@@ -705,8 +723,10 @@ class _Storage:
             self.grid_v_out[I] = v
 
     @ti.func
-    def _g2p_particle(self, p, s, so):
-        dt, inv_dx = self._dt(p), 1.0 / self.dx[None]
+    def _gather(self, p, s, planes: ti.template()):
+        """Particle p's new velocity and affine velocity C from the stencil's nodes in the planes
+        i in `planes` (all three in the forward pass)."""
+        inv_dx = 1.0 / self.dx[None]
         base = self._base(self.x[s, p])
         node = base + self._offset(p)
         fx = self.x[s, p] * inv_dx - ti.cast(base, float)
@@ -714,14 +734,34 @@ class _Storage:
         new_v = ti.Vector.zero(float, 3)
         new_C = ti.Matrix.zero(float, 3, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            offset = ti.Vector([i, j, k])
-            g_v = self.grid_v_out[node + offset]
-            weight = w[i][0] * w[j][1] * w[k][2]
-            new_v += weight * g_v
-            new_C += 4.0 * inv_dx * weight * g_v.outer_product(ti.cast(offset, float) - fx)
+            if ti.static(i in planes):
+                offset = ti.Vector([i, j, k])
+                g_v = self.grid_v_out[node + offset]
+                weight = w[i][0] * w[j][1] * w[k][2]
+                new_v += weight * g_v
+                new_C += 4.0 * inv_dx * weight * g_v.outer_product(ti.cast(offset, float) - fx)
+        return new_v, new_C
+
+    @ti.func
+    def _g2p_particle(self, p, s, so):
+        new_v, new_C = self._gather(p, s, (0, 1, 2))
         self.v[so, p] = new_v
         self.C[so, p] = new_C
-        self.x[so, p] = self.x[s, p] + dt * new_v
+        self.x[so, p] = self.x[s, p] + self._dt(p) * new_v
+
+    @ti.kernel
+    def _g2p_plane(self, s: ti.i32, n: ti.i32, plane: ti.template()):
+        """g2p's gather from the stencil's plane i = `plane`, written as sums into slot s + 1, for
+        differentiable layouts: only its adjoint runs (g2p's adjoint is the sum of the three
+        planes', the plain copy of x in plane 0's), as for `_p2g_plane`."""
+        for p in range(n):
+            new_v, new_C = self._gather(p, s, (plane,))
+            self.v[s + 1, p] += new_v
+            self.C[s + 1, p] += new_C
+            if ti.static(plane == 0):
+                self.x[s + 1, p] += self.x[s, p] + self._dt(p) * new_v
+            else:
+                self.x[s + 1, p] += self._dt(p) * new_v
 
     @ti.kernel
     def _g2p(self, s: ti.i32, so: ti.i32, n: ti.i32, j: ti.i32):
@@ -1044,14 +1084,14 @@ class Simulator:
         if self.scene.grid_region == "full":
             for d in range(3):
                 self.k.lo[d][None] = 0
-                self.k.hi[d][None] = self.layout.grid_shape[d]
+                self.k.hi[d][None] = self.k.grid_total[d]
         else:
             self.k._bounds(s, self.n)
         self.k._clear_grid()
-        for model, start, end in self._runs if self.k.has_params else ():
+        for model, start, end in self._runs if self.k.separate_stress else ():
             if model in HENCKY_PLASTIC:
                 self.k._eigen_frames(s, start, end)
-            self.k._constitutive_update(model, s, so, start, end, j)
+            self.k._constitutive_update(model, s, so, t, start, end, j)
         self.k._p2g(s, so, t, self.n, j)
         self.k._grid_op()
 
@@ -1059,13 +1099,14 @@ class Simulator:
         """Reverse of substep s -> s + 1: recompute its grid, then the adjoint kernels."""
         self._grid_update(s, s + 1, t)
         self.k._clear_grid_grad()
-        self.k._g2p.grad(s, s + 1, self.n, 0)
+        for plane in range(3):
+            self.k._g2p_plane.grad(s, self.n, plane)
         self.k._grid_op.grad()
-        if self.k.has_params:
-            self.k.tau.grad.fill(0)
-        self.k._p2g.grad(s, s + 1, t, self.n, 0)
-        for model, start, end in self._runs if self.k.has_params else ():
-            self.k._constitutive_update.grad(model, s, s + 1, start, end, 0)
+        self.k.tau.grad.fill(0)
+        for plane in range(3):
+            self.k._p2g_plane.grad(s, self.n, plane)
+        for model, start, end in self._runs:
+            self.k._constitutive_update.grad(model, s, s + 1, t, start, end, 0)
 
     def _guard(self, slot: int, substep: int) -> None:
         """Stop with a clear error if the state went non-finite, left the grid or broke CFL."""

@@ -187,13 +187,14 @@ def codesign_cli(app: typer.Typer) -> None:
 
     @bench.command("engine")
     def bench_engine(
-        scale: list[str] = typer.Option(["small"], "--scale", help="small (about 7.7k particles, dx 1/64) "
-                                        "and/or paper (about 61k particles, dx 1/128); repeatable."),
+        scale: list[str] = typer.Option(["small"], "--scale", help="tiny (about 1k particles, dx 1/32), small "
+                                        "(about 7.7k, dx 1/64) and/or paper (about 61k, dx 1/128); repeatable."),
         frames: int = typer.Option(200, "--frames", min=1, help="Frames of the differentiable episode."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
     ) -> None:
         """Forward particle-substeps/s (float32, float64, dense grid), (forward + backward) / forward
-        with checkpointing, peak memory of a differentiable episode, and first-call (compile) time."""
+        with checkpointing, peak memory of a differentiable episode, first-call (compile) time, and
+        8 episodes in one batched simulator against the same 8 one after the other."""
         from codesign_mpm.bench import SCALES, run_engine_bench
 
         for s in scale:

@@ -1,7 +1,7 @@
 """The benchmark code path stays runnable (its numbers are for `codesign bench`, not for tests)."""
 import json
 
-from codesign_mpm.bench import Case, measure_forward
+from codesign_mpm.bench import Case, measure_batch, measure_forward
 
 
 def test_forward_measurement_reports_throughput():
@@ -11,3 +11,10 @@ def test_forward_measurement_reports_throughput():
     assert record["particles"] > 5000
     assert abs(record["substeps_per_frame"] * record["dt"] - 8e-3) < 1e-12
     assert record["particle_substeps_per_s"] > 0 and len(record["repeats"]) == 2
+
+
+def test_batch_measurement_compares_one_batch_with_the_same_episodes_one_at_a_time():
+    record = measure_batch(Case("tiny", "float32"), members=2, frames=1, repeats=1)
+    json.dumps(record)
+    assert record["members"] == 2 and record["particles_per_member"] > 500
+    assert record["speedup"] > 0 and record["batch_particle_substeps_per_s"] > 0
