@@ -1,4 +1,5 @@
-"""`codesign bench engine`: throughput, backward cost, memory and compile time, as JSON lines.
+"""`codesign bench engine` (throughput, backward cost, memory, batches), `codesign bench environments`
+and `codesign bench compile` (cold compile time per material), as JSON lines.
 
 Every measurement runs in its own subprocess, so Taichi initialises with the requested
 precision and the peak resident memory (ru_maxrss) belongs to that measurement alone.
@@ -136,6 +137,44 @@ def measure_batch(case: Case, members: int = 8, frames: int = 5, repeats: int = 
                 speedup=float(np.median(np.asarray(sequential) / np.asarray(together))))
 
 
+COVERS = ("none", "sand", "snow", "clay", "mud", "water")
+"""What `measure_compile` puts under the robot: each material's own backward kernels."""
+
+
+def measure_compile(cover: str, dtype: str = "float32") -> dict:
+    """Seconds to compile a new scene's kernels with an empty offline cache: the muscle-actuated
+    robot of scale `tiny` on a layer of `cover` ("none": bare ground), forward (first frame of a
+    rollout) and backward (its first backward pass)."""
+    import tempfile
+
+    os.environ["CODESIGN_TAICHI_CACHE"] = tempfile.mkdtemp(prefix="codesign-bench-cache-")  # cold
+    from codesign_mpm import BodySpec, MaterialSpec, ShapeSpec, build_particles
+    from codesign_mpm.engine import Simulator
+
+    scene = robot_scene(Case("tiny", dtype))
+    if cover != "none":
+        scene.bodies.append(BodySpec(name="cover", shape=ShapeSpec(kind="layer", thickness=0.05),
+                                     material=MaterialSpec(kind=cover)))
+    t0 = time.perf_counter()
+    sim = Simulator(scene, build_particles(scene), requires_grad=True, max_frames=1)
+    sim.rollout(np.zeros((1, sim.n_actuators)))
+    forward = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    sim.backward(com_v=np.ones((2, 3)))
+    backward = time.perf_counter() - t0
+    return dict(measure="compile", cover=cover, dtype=dtype, forward_s=round(forward, 1), backward_s=round(backward, 1),
+                total_s=round(forward + backward, 1))
+
+
+def run_compile_bench(covers: list[str], dtype: str, emit, progress: bool = True) -> None:
+    """Emit one JSON object per cover, each compiled cold in its own process."""
+    from codesign.progress import progress_bar
+
+    machine = _machine()
+    for cover in progress_bar(covers, desc="bench compile", unit="scene", show=progress):
+        emit(dict(**{"measure": "compile", "cover": cover, **_in_subprocess("compile", cover, dtype)}, **machine))
+
+
 def _machine() -> dict:
     return dict(machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version())
 
@@ -260,6 +299,8 @@ def run_environment_bench(scales: list[str], names: list[str], emit, progress: b
 if __name__ == "__main__":  # one isolated measurement, used by _run_isolated / run_environment_bench
     if sys.argv[1] == "environment":
         print(json.dumps(measure_environment(sys.argv[2], sys.argv[3])))
+    elif sys.argv[1] == "compile":
+        print(json.dumps(measure_compile(sys.argv[2], sys.argv[3])))
     else:
         kind, scale, dtype, region, kwargs = sys.argv[1:6]
         measure = {"forward": measure_forward, "backward": measure_backward, "batch": measure_batch}[kind]

@@ -4,9 +4,9 @@ One substep is four kernels, each close to its equation:
 
     bounds   -> the box of grid nodes the particles touch (only those are cleared and updated)
     p2g      -> F <- (I + dt C) F; Kirchhoff stress (elastic model + muscle); scatter m v and
-                the MLS force/affine term to 27 nodes. Scenes with non-elastic materials first
-                run one small kernel per material run (`_constitutive_update`: return
-                mapping, stress), and p2g only adds the muscle term and scatters
+                the MLS force/affine term to 27 nodes. Scenes with non-elastic materials and
+                differentiable layouts first run one small kernel per material run
+                (`_constitutive_update`: return mapping, stress, muscle), and p2g only scatters
     grid_op  -> v = p / m + dt g; terrain (height-map SDF, Coulomb friction); domain walls
     g2p      -> gather v and C; x <- x + dt v
 
@@ -14,6 +14,12 @@ Particle state lives in `slots`: two (ping-pong) for plain simulation, or S + 1 
 differentiable segment of S substeps. A differentiable rollout stores the state only at
 segment starts (checkpoints) and recomputes each segment in the backward pass, so memory
 grows with T/S + S rather than T substeps. The grid is recomputed per substep in reverse.
+
+Compile time: Taichi's passes over a kernel's statements grow with their number squared, and
+reverse mode multiplies that number. The reverse pass therefore differentiates p2g and g2p one
+plane of the 3x3x3 stencil at a time (`_p2g_plane`, `_g2p_plane`: their adjoints sum to the
+whole kernel's), and the stress has its own kernel: the backward kernels of an elastic scene
+compile about 5x faster than the fused ones (docs/performance.md).
 
 Only what the scene uses is compiled: the material models present (their return mappings,
 the plastic volume ratio J_p of snow), the muscle term when the scene has actuators, the
@@ -432,13 +438,14 @@ class _Storage:
         return ((g[q] - g[p]) * d + 0.5 * (slope[p] + slope[q]) * JACOBI_EPS ** 2) / (d * d + JACOBI_EPS ** 2)
 
     @ti.func
-    def _spectral(self, Q0, A, a, g, slope):
+    def _principal(self, A, a, g, slope):
         """The isotropic function of b = Q0 A Q0^T with eigenvalue function g (values at a = diag A,
-        slopes dg_i/da_i at coincidence), to first order in A's off-diagonal round-off."""
+        slopes dg_i/da_i at coincidence), to first order in A's off-diagonal round-off, in the
+        frame Q0: the function is Q0 M Q0^T."""
         g01 = A[0, 1] * self._divided(g, slope, a, 0, 1)
         g02 = A[0, 2] * self._divided(g, slope, a, 0, 2)
         g12 = A[1, 2] * self._divided(g, slope, a, 1, 2)
-        return Q0 @ ti.Matrix([[g[0], g01, g02], [g01, g[1], g12], [g02, g12, g[2]]]) @ Q0.transpose()
+        return ti.Matrix([[g[0], g01, g02], [g01, g[1], g12], [g02, g12, g[2]]])
 
     @ti.func
     def _plastic(self, model: ti.template(), p, s, so, F, mu, la):
@@ -457,7 +464,8 @@ class _Storage:
         projection's scale exp(eps_new_i - eps_i) the slope scale_i (alpha - 1) / (2 a_i).
         """
         Q0 = self.frame[p]  # eigenvectors of b = F F^T from _eigen_frames: A is diagonal up to round-off
-        A = Q0.transpose() @ F @ F.transpose() @ Q0
+        P = Q0.transpose() @ F  # F in that frame (fewer products: the adjoint's size sets its compile time)
+        A = P @ P.transpose()
         a = ti.max(ti.Vector([A[0, 0], A[1, 1], A[2, 2]]), J_MIN * J_MIN)
         eps = 0.5 * ti.log(a)
         tr = eps.sum()
@@ -504,8 +512,8 @@ class _Storage:
             k_slope = h * mu * inside
         else:  # Hencky: tau = 2 mu eps + lambda tr(eps) I, in the principal frame
             k = 2.0 * mu * eps_new + la * eps_new.sum()
-        F_new = F + self._spectral(Q0, A, a, scale - 1.0, scale_slope) @ F
-        return F_new, self._spectral(Q0, A, a, k, k_slope)
+        F_new = F + Q0 @ (self._principal(A, a, scale - 1.0, scale_slope) @ P)
+        return F_new, Q0 @ self._principal(A, a, k, k_slope) @ Q0.transpose()
 
     @ti.func
     def _constitutive(self, model: ti.template(), p, s, so):

@@ -185,6 +185,24 @@ def codesign_cli(app: typer.Typer) -> None:
         _measure_or_read(lambda: run_stability_bench(case or list(CASES), size, _echo_json, progress=not no_progress),
                          from_file, report, write_stability_report)
 
+    @bench.command("compile")
+    def bench_compile(
+        cover: list[str] = typer.Option([], "--cover", help="Ground cover under the robot (none, sand, snow, "
+                                        "clay, mud, water); repeatable; default: all."),
+        dtype: str = typer.Option("float32", "--dtype", help="float32 or float64."),
+        no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
+    ) -> None:
+        """Seconds to compile a new scene's forward and backward kernels with an empty offline cache:
+        a muscle-actuated robot on each ground cover, each in its own process."""
+        from codesign_mpm.bench import COVERS, run_compile_bench
+
+        for c in cover:
+            if c not in COVERS:
+                raise typer.BadParameter(f"--cover {c!r}: choose from {', '.join(COVERS)}")
+        if dtype not in ("float32", "float64"):
+            raise typer.BadParameter(f"--dtype {dtype!r}: choose from float32, float64")
+        run_compile_bench(list(cover or COVERS), dtype, _echo_json, progress=not no_progress)
+
     @bench.command("engine")
     def bench_engine(
         scale: list[str] = typer.Option(["small"], "--scale", help="tiny (about 1k particles, dx 1/32), small "

@@ -18,3 +18,8 @@ def test_batch_measurement_compares_one_batch_with_the_same_episodes_one_at_a_ti
     json.dumps(record)
     assert record["members"] == 2 and record["particles_per_member"] > 500
     assert record["speedup"] > 0 and record["batch_particle_substeps_per_s"] > 0
+
+
+def test_bench_compile_names_the_allowed_covers(cli):
+    code, _, err = cli("bench", "compile", "--cover", "lava")
+    assert code != 0 and "--cover 'lava': choose from none, sand, snow, clay, mud, water" in " ".join(err.replace("│", " ").split())
