@@ -61,7 +61,13 @@ def play(env: Environment, design: DesignFields | None, controller: Controller, 
             observation = result.observation
             if result.done:
                 break
-    return EpisodeRecord(total, len(actions), np.array(coms).reshape(-1, 3), np.array(actions).reshape(len(actions), -1))
+    return _record(total, coms, actions)
+
+
+def _record(total: float, coms: list, actions: list) -> EpisodeRecord:
+    """An episode's record from its summed reward and per-step centres of mass and actions."""
+    return EpisodeRecord(float(total), len(actions), np.array(coms).reshape(-1, 3),
+                         np.array(actions).reshape(len(actions), -1))
 
 
 def play_population(env: Environment, designs: list[DesignFields | None], controllers: list[Controller],
@@ -108,8 +114,7 @@ def _play_together(env: Environment, designs: list, controllers: list[Controller
                 running[b] = not results[b].done
             if not running.any():
                 break
-    return [EpisodeRecord(float(totals[b]), len(actions[b]), np.array(coms[b]).reshape(-1, 3),
-                          np.array(actions[b]).reshape(len(actions[b]), -1)) for b in range(B)]
+    return [_record(totals[b], coms[b], actions[b]) for b in range(B)]
 
 
 def save_best(run_dir: Path, design: DesignFields, points: np.ndarray, controller: Controller,

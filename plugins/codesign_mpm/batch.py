@@ -69,10 +69,13 @@ class BatchSimulator(Simulator):
         return [Particles(**{name: getattr(particles, name)[a:b] for name in Particles.__dataclass_fields__})
                 for a, b in zip(self.starts[:-1], self.starts[1:])]
 
-    def _use(self, particles: Particles) -> None:
-        # the whole batch's step is its most demanding member's; each member keeps its own as well
-        super()._use(particles)
+    def _time_step(self, particles: Particles) -> TimeStep:
+        # each member keeps its own step; the batch runs as many substeps as the most demanding one
         self.member_steps = [time_step(self.scene, member) for member in self._members(particles)]
+        return max(self.member_steps, key=lambda step: step.substeps)
+
+    def _use(self, particles: Particles) -> None:
+        super()._use(particles)
         k, r = self.k, self.np_real
         if k.batched:
             self._put(k.member, np.repeat(np.arange(self.size, dtype=np.int32), self.counts))

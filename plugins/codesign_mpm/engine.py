@@ -614,9 +614,10 @@ class _Storage:
     @ti.kernel
     def _constitutive_update(self, model: ti.template(), s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32,
                              end: ti.i32, j: ti.i32):
-        """Scenes with plastic models: F and stress of the particles [start, end) of one model,
-        in their own kernel ahead of p2g (one small kernel per model compiles far faster than
-        all of them fused into the 27-node scatter). `j`: the substep within the control step."""
+        """Scenes with plastic models and differentiable layouts (`separate_stress`): F and stress
+        (muscle included, at action row t) of the particles [start, end) of one model, in their own
+        kernel ahead of p2g (one small kernel per model compiles far faster than all of them fused
+        into the 27-node scatter). `j`: the substep within the control step."""
         for p in range(start, end):
             if ti.static(self.batched):
                 if self._active(p, j):
@@ -820,9 +821,10 @@ class _Storage:
             if not (magnitude < 1e30) or not inside:
                 self.n_bad[None] += 1
                 ti.atomic_min(self.first_bad[None], p)
-            ti.atomic_max(self.max_speed[None], v.norm())
-            if ti.static(self.batched):
+            if ti.static(self.batched):  # each member is checked against its own time step
                 ti.atomic_max(self.member_speed[self.member[p]], v.norm())
+            else:
+                ti.atomic_max(self.max_speed[None], v.norm())
 
 
 
@@ -888,7 +890,7 @@ class Simulator:
         runtime.init_taichi(scene.arch, scene.dtype)
         self.scene = scene
         self.np_real = np.float64 if scene.dtype == "float64" else np.float32
-        self.timestep = time_step(scene, particles)
+        self.timestep = self._time_step(particles)
         self.n = particles.n
         self.n_actuators = particles.n_actuators
         self.requires_grad = requires_grad
@@ -922,6 +924,10 @@ class Simulator:
     def _layout(self, layout: Layout) -> Layout:
         """The storage layout to compile for (a batch adjusts the plain one)."""
         return layout
+
+    def _time_step(self, particles: Particles) -> TimeStep:
+        """The CFL step that `particles` need (a batch: its most demanding member's)."""
+        return time_step(self.scene, particles)
 
     def close(self) -> None:
         """Hand the compiled storage back for reuse; the simulator is unusable afterwards."""
@@ -986,7 +992,7 @@ class Simulator:
 
     def _use(self, particles: Particles) -> None:
         """Take a private copy of `particles` and the CFL time step that they need."""
-        timestep = time_step(self.scene, particles)
+        timestep = self._time_step(particles)
         self._unit_fiber, self._fiber_length = _unit_fibers(particles.fiber)
         self.particles = replace(particles, **{name: np.array(getattr(particles, name), copy=True)
                                                for name in Particles.__dataclass_fields__})
