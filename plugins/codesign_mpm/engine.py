@@ -195,6 +195,7 @@ class Layout:
     has_terrain: bool
     boundary_cells: int
     requires_grad: bool
+    scatter_copies: int = 1  # private grids p2g scatters into without atomics (runtime.scatter_copies)
     members: int = 1  # scenes simulated side by side (codesign_mpm.batch); 1: a plain simulator
 
 
@@ -225,6 +226,8 @@ class _Storage:
         self.boundary_cells = layout.boundary_cells
         self.members = layout.members
         self.batched = layout.members > 1
+        self.copies = layout.scatter_copies
+        self.private_scatter = layout.scatter_copies > 1
         # a batch's member grids lie side by side along x: member b owns nodes [b nx, (b + 1) nx)
         self.grid_total = (layout.grid_shape[0] * layout.members,) + tuple(layout.grid_shape[1:])
         n, K, gs, grad = layout.capacity, max(layout.n_actuators, 1), layout.grid_shape, layout.requires_grad
@@ -266,6 +269,8 @@ class _Storage:
         self.grid_v_in = vec(3, self.grid_total, True)
         self.grid_m = scalar(self.grid_total, True)
         self.grid_v_out = vec(3, self.grid_total, True)
+        if self.private_scatter:  # p2g's chunk c of the particles scatters into copy c; _sum_copies adds them
+            self.grid_part = vec(4, (self.copies,) + self.grid_total)
         self.height = scalar((gs[0], gs[2]))
         self.normal = vec(3, (gs[0], gs[2]))
         # the node box touched by particles; scalar fields so the reduction stays thread-local
@@ -390,11 +395,13 @@ class _Storage:
 
     @ti.kernel
     def _bounds(self, s: ti.i32, n: ti.i32):
+        """The node box the particles touch, in their own scene's grid coordinates: a batch's grid
+        kernels visit that box in every member's grid, not the span of all members."""
         for d in ti.static(range(3)):
-            self.lo[d][None] = self.grid_total[d]
+            self.lo[d][None] = self.grid_shape[d]
             self.hi[d][None] = 0
         for p in range(n):
-            base = self._base(self.x[s, p]) + self._offset(p)
+            base = self._base(self.x[s, p])
             for d in ti.static(range(3)):
                 ti.atomic_min(self.lo[d][None], base[d])
                 ti.atomic_max(self.hi[d][None], base[d] + 3)
@@ -635,9 +642,10 @@ class _Storage:
             self.Jp[so, p] = self.Jp[s, p]
 
     @ti.func
-    def _p2g_particle(self, p, s, so, t, planes: ti.template()):
+    def _p2g_particle(self, p, s, so, t, planes: ti.template(), copy):
         """Scatter particle p's momentum, mass and MLS force to the stencil's nodes in the planes
-        i in `planes` (all three in the forward pass)."""
+        i in `planes` (all three in the forward pass): into private grid `copy` with plain adds
+        (its chunk of particles is one thread's), or with atomic adds into the grid if `copy` < 0."""
         dt, dx = self._dt(p), self.dx[None]
         inv_dx = 1.0 / dx
         base = self._base(self.x[s, p])
@@ -661,19 +669,39 @@ class _Storage:
                 offset = ti.Vector([i, j, k])
                 dpos = (ti.cast(offset, float) - fx) * dx
                 weight = w[i][0] * w[j][1] * w[k][2]
-                self.grid_v_in[node + offset] += weight * (mass * self.v[s, p] + affine @ dpos)
-                self.grid_m[node + offset] += weight * mass
+                momentum = weight * (mass * self.v[s, p] + affine @ dpos)
+                if ti.static(self.private_scatter):
+                    if copy >= 0:  # not an atomic add: a float atomic add is a compare-and-swap loop on CPUs
+                        I = node + offset
+                        c = self.grid_part[copy, I[0], I[1], I[2]]
+                        self.grid_part[copy, I[0], I[1], I[2]] = c + ti.Vector(
+                            [momentum[0], momentum[1], momentum[2], weight * mass])
+                    else:
+                        self.grid_v_in[node + offset] += momentum
+                        self.grid_m[node + offset] += weight * mass
+                else:
+                    self.grid_v_in[node + offset] += momentum
+                    self.grid_m[node + offset] += weight * mass
+
+    @ti.func
+    def _p2g_one(self, p, s, so, t, j, copy):
+        if ti.static(self.batched):
+            if self._active(p, j):
+                self._p2g_particle(p, s, so, t, (0, 1, 2), copy)
+            elif ti.static(not self.separate_stress):  # else _constitutive_update held it
+                self._hold_deformation(p, s, so)
+        else:
+            self._p2g_particle(p, s, so, t, (0, 1, 2), copy)
 
     @ti.kernel
     def _p2g(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32, j: ti.i32):
-        for p in range(n):
-            if ti.static(self.batched):
-                if self._active(p, j):
-                    self._p2g_particle(p, s, so, t, (0, 1, 2))
-                elif ti.static(not self.separate_stress):  # else _constitutive_update held it
-                    self._hold_deformation(p, s, so)
-            else:
-                self._p2g_particle(p, s, so, t, (0, 1, 2))
+        if ti.static(self.private_scatter):
+            for c in range(self.copies):  # one chunk of particles per thread, each into its own grid
+                for p in range(c * n // self.copies, (c + 1) * n // self.copies):
+                    self._p2g_one(p, s, so, t, j, c)
+        else:
+            for p in range(n):
+                self._p2g_one(p, s, so, t, j, -1)
 
     @ti.kernel
     def _p2g_plane(self, s: ti.i32, n: ti.i32, plane: ti.template()):
@@ -681,19 +709,43 @@ class _Storage:
         adjoint runs (p2g's adjoint is the sum of the three planes'), and three adjoint kernels of 9
         nodes compile about three times faster than one of 27 (Taichi's passes grow with size squared)."""
         for p in range(n):
-            self._p2g_particle(p, s, s + 1, 0, (plane,))
+            self._p2g_particle(p, s, s + 1, 0, (plane,), -1)
+
+    @ti.func
+    def _node(self, b, i, j, k):
+        """Node (i, j, k) of member b's grid in the grid fields (members side by side along x); the
+        grid kernels visit the touched box (`_bounds`) in every member's grid."""
+        return ti.Vector([b * self.grid_shape[0] + i, j, k])
 
     @ti.kernel
     def _clear_grid(self):
-        for I in ti.grouped(ti.ndrange((self.lo[0][None], self.hi[0][None]), (self.lo[1][None], self.hi[1][None]),
-                                       (self.lo[2][None], self.hi[2][None]))):
-            self.grid_v_in[I] = ti.Vector.zero(float, 3)
-            self.grid_m[I] = 0.0
+        for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
+                                     (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
+            I = self._node(b, i, j, k)
+            if ti.static(self.private_scatter):
+                for c in range(self.copies):
+                    self.grid_part[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 4)
+            else:
+                self.grid_v_in[I] = ti.Vector.zero(float, 3)
+                self.grid_m[I] = 0.0
+
+    @ti.kernel
+    def _sum_copies(self):
+        """The grid's momentum and mass: the sum of p2g's private grids."""
+        for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
+                                     (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
+            I = self._node(b, i, j, k)
+            total = ti.Vector.zero(float, 4)
+            for c in range(self.copies):
+                total += self.grid_part[c, I[0], I[1], I[2]]
+            self.grid_v_in[I] = ti.Vector([total[0], total[1], total[2]])
+            self.grid_m[I] = total[3]
 
     @ti.kernel
     def _clear_grid_grad(self):
-        for I in ti.grouped(ti.ndrange((self.lo[0][None], self.hi[0][None]), (self.lo[1][None], self.hi[1][None]),
-                                       (self.lo[2][None], self.hi[2][None]))):
+        for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
+                                     (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
+            I = self._node(b, i, j, k)
             self.grid_v_in.grad[I] = ti.Vector.zero(float, 3)
             self.grid_m.grad[I] = 0.0
             self.grid_v_out.grad[I] = ti.Vector.zero(float, 3)
@@ -701,14 +753,13 @@ class _Storage:
     @ti.kernel
     def _grid_op(self):
         bc = ti.static(self.boundary_cells)
-        for I in ti.grouped(ti.ndrange((self.lo[0][None], self.hi[0][None]), (self.lo[1][None], self.hi[1][None]),
-                                       (self.lo[2][None], self.hi[2][None]))):
+        for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
+                                     (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
+            I = self._node(b, i, j, k)
             dt, dx, mu = self.dt[None], self.dx[None], self.friction[None]
-            local = I  # the node's index in its own scene's grid
+            local = ti.Vector([i, j, k])  # the node's index in its own scene's grid
             if ti.static(self.batched):
-                member = I[0] // self.grid_shape[0]
-                local[0] -= member * self.grid_shape[0]
-                dt = self.member_dt[member]
+                dt = self.member_dt[b]
             m = self.grid_m[I]
             v = ti.Vector.zero(float, 3)
             if m > MASS_EPS:
@@ -909,6 +960,7 @@ class Simulator:
             has_terrain=scene.terrain.kind != "none",
             boundary_cells=scene.boundary_cells,
             requires_grad=requires_grad,
+            scatter_copies=runtime.scatter_copies(),
         ))
         self.k = _acquire(self.layout)
         self._generation = runtime.generation
@@ -1098,7 +1150,7 @@ class Simulator:
         if self.scene.grid_region == "full":
             for d in range(3):
                 self.k.lo[d][None] = 0
-                self.k.hi[d][None] = self.k.grid_total[d]
+                self.k.hi[d][None] = self.k.grid_shape[d]
         else:
             self.k._bounds(s, self.n)
         self.k._clear_grid()
@@ -1107,6 +1159,8 @@ class Simulator:
                 self.k._eigen_frames(s, start, end)
             self.k._constitutive_update(model, s, so, t, start, end, j)
         self.k._p2g(s, so, t, self.n, j)
+        if self.k.private_scatter:
+            self.k._sum_copies()
         self.k._grid_op()
 
     def _substep_grad(self, s: int, t: int) -> None:

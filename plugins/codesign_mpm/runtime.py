@@ -40,6 +40,23 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
     generation += 1
 
 
+MAX_SCATTER_COPIES = 4
+"""p2g on a CPU scatters each thread's chunk of particles into a private grid (2.5x to 4x faster
+than float atomic adds, measured); each copy is a dense grid of 4 floats per node, so their
+number is capped: more threads than copies leave the rest idle during p2g."""
+
+
+def scatter_copies() -> int:
+    """Private grids for p2g: one per CPU thread (up to MAX_SCATTER_COPIES); 1 on a GPU, whose
+    atomic adds are native (1 means one shared grid with atomic adds)."""
+    from taichi.lang import impl
+
+    cfg = impl.current_cfg()
+    if cfg.arch != ti.x64 and cfg.arch != ti.arm64:
+        return 1
+    return max(1, min(cfg.cpu_max_num_threads, MAX_SCATTER_COPIES))
+
+
 def reset() -> None:
     """Free every field and compiled kernel of this process; the next simulator starts afresh.
 
