@@ -137,6 +137,35 @@ def measure_batch(case: Case, members: int = 8, frames: int = 5, repeats: int = 
                 speedup=float(np.median(np.asarray(sequential) / np.asarray(together))))
 
 
+def measure_scatter(case: Case, frames: int = 3, repeats: int = 5) -> dict:
+    """Forward throughput with p2g's private grids (the CPU default) against one grid with atomic
+    adds, in one process, timed alternately."""
+    from codesign_mpm import build_particles, runtime
+    from codesign_mpm.engine import Simulator
+
+    scene = robot_scene(case)
+    particles = build_particles(scene)
+    private = Simulator(scene, particles)
+    os.environ["CODESIGN_SCATTER_COPIES"] = "1"
+    try:
+        atomic = Simulator(scene, particles)
+    finally:
+        del os.environ["CODESIGN_SCATTER_COPIES"]
+    times: dict[str, list[float]] = {"private": [], "atomic": []}
+    for sim in (private, atomic):
+        sim.step(np.zeros(sim.n_actuators))  # compile (or load from the offline cache)
+    for r in range(repeats):
+        for name, sim in (("private", private), ("atomic", atomic)):
+            t0 = time.perf_counter()
+            sim.step(np.full(sim.n_actuators, 0.1 * (-1) ** r), frames=frames)
+            times[name].append(time.perf_counter() - t0)
+    work = particles.n * frames * private.timestep.substeps
+    return dict(measure="scatter", particles=particles.n, copies=runtime.scatter_copies(),
+                private_particle_substeps_per_s=work / float(np.median(times["private"])),
+                atomic_particle_substeps_per_s=work / float(np.median(times["atomic"])),
+                speedup=float(np.median(np.asarray(times["atomic"]) / np.asarray(times["private"]))))
+
+
 COVERS = ("none", "sand", "snow", "clay", "mud", "water")
 """What `measure_compile` puts under the robot: each material's own backward kernels."""
 
@@ -204,7 +233,7 @@ def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True
     from codesign.progress import progress_bar
 
     machine = _machine()
-    with progress_bar(total=5 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
+    with progress_bar(total=6 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
         for scale in scales:
             for case in (Case(scale, "float32"), Case(scale, "float64"), Case(scale, "float32", "full")):
                 emit(dict(scale=scale, dtype=case.dtype, grid_region=case.grid_region,
@@ -214,6 +243,8 @@ def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True
             emit(dict(scale=scale, dtype="float32", **_run_isolated("backward", case, frames=frames), **machine))
             bar.update(1)
             emit(dict(scale=scale, dtype="float32", **_run_isolated("batch", case), **machine))
+            bar.update(1)
+            emit(dict(scale=scale, dtype="float32", **_run_isolated("scatter", case), **machine))
             bar.update(1)
 
 
@@ -303,5 +334,6 @@ if __name__ == "__main__":  # one isolated measurement, used by _run_isolated / 
         print(json.dumps(measure_compile(sys.argv[2], sys.argv[3])))
     else:
         kind, scale, dtype, region, kwargs = sys.argv[1:6]
-        measure = {"forward": measure_forward, "backward": measure_backward, "batch": measure_batch}[kind]
+        measure = {"forward": measure_forward, "backward": measure_backward, "batch": measure_batch,
+                   "scatter": measure_scatter}[kind]
         print(json.dumps(measure(Case(scale, dtype, region), **json.loads(kwargs))))

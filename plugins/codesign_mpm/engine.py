@@ -10,16 +10,23 @@ One substep is four kernels, each close to its equation:
     grid_op  -> v = p / m + dt g; terrain (height-map SDF, Coulomb friction); domain walls
     g2p      -> gather v and C; x <- x + dt v
 
+Scatters without atomics: on a CPU a float atomic add is a compare-and-swap loop, and p2g's
+108 of them per particle bound the whole substep. There, each thread scatters its chunk of
+particles into a private grid with plain adds (`grid_part`) and `_sum_copies` adds the copies
+(and leaves them zero for the next substep); g2p's adjoint scatters the same way. On a GPU,
+whose atomic adds are native, both scatter into the grid directly.
+
 Particle state lives in `slots`: two (ping-pong) for plain simulation, or S + 1 for a
 differentiable segment of S substeps. A differentiable rollout stores the state only at
 segment starts (checkpoints) and recomputes each segment in the backward pass, so memory
 grows with T/S + S rather than T substeps. The grid is recomputed per substep in reverse.
 
-Compile time: Taichi's passes over a kernel's statements grow with their number squared, and
-reverse mode multiplies that number. The reverse pass therefore differentiates p2g and g2p one
-plane of the 3x3x3 stencil at a time (`_p2g_plane`, `_g2p_plane`: their adjoints sum to the
-whole kernel's), and the stress has its own kernel: the backward kernels of an elastic scene
-compile about 5x faster than the fused ones (docs/performance.md).
+Adjoints: p2g's and g2p's are written by hand (`_p2g_adjoint`, a gather; `_g2p_adjoint`, a
+scatter, private per thread as p2g's) and checked against finite differences by the gradient
+tests. Taichi's reverse mode of the 27-node stencils compiled for minutes (its passes grow with
+a kernel's statements squared) and scattered with atomic adds; hand-written, they compile as
+forward kernels. Taichi differentiates the rest: the stress (its own kernel in differentiable
+layouts), the return mappings, grid_op and the probe.
 
 Only what the scene uses is compiled: the material models present (their return mappings,
 the plastic volume ratio J_p of snow), the muscle term when the scene has actuators, the
@@ -642,16 +649,22 @@ class _Storage:
             self.Jp[so, p] = self.Jp[s, p]
 
     @ti.func
-    def _p2g_particle(self, p, s, so, t, planes: ti.template(), copy):
-        """Scatter particle p's momentum, mass and MLS force to the stencil's nodes in the planes
-        i in `planes` (all three in the forward pass): into private grid `copy` with plain adds
-        (its chunk of particles is one thread's), or with atomic adds into the grid if `copy` < 0."""
+    def _stencil(self, p, s):
+        """Particle p's 3x3x3 stencil: its lowest node in the grid fields, its position in cells
+        relative to the scene-local lowest node, and the quadratic B-spline weights per axis."""
+        base = self._base(self.x[s, p])
+        fx = self.x[s, p] * (1.0 / self.dx[None]) - ti.cast(base, float)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        return base + self._offset(p), fx, w
+
+    @ti.func
+    def _p2g_particle(self, p, s, so, t, copy):
+        """Scatter particle p's momentum, mass and MLS force to its 27 nodes: into private grid
+        `copy` with plain adds where the scatter is private (its chunk of particles is one thread's),
+        else with atomic adds into the grid."""
         dt, dx = self._dt(p), self.dx[None]
         inv_dx = 1.0 / dx
-        base = self._base(self.x[s, p])
-        node = base + self._offset(p)
-        fx = self.x[s, p] * inv_dx - ti.cast(base, float)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        node, fx, w = self._stencil(p, s)
         F = ti.Matrix.zero(float, 3, 3)
         tau = ti.Matrix.zero(float, 3, 3)
         if ti.static(self.separate_stress):  # computed by _constitutive_update, muscle included
@@ -665,33 +678,67 @@ class _Storage:
         mass = self.rho[p] * vol
         affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * self.C[s, p]
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            if ti.static(i in planes):
-                offset = ti.Vector([i, j, k])
-                dpos = (ti.cast(offset, float) - fx) * dx
-                weight = w[i][0] * w[j][1] * w[k][2]
-                momentum = weight * (mass * self.v[s, p] + affine @ dpos)
-                if ti.static(self.private_scatter):
-                    if copy >= 0:  # not an atomic add: a float atomic add is a compare-and-swap loop on CPUs
-                        I = node + offset
-                        c = self.grid_part[copy, I[0], I[1], I[2]]
-                        self.grid_part[copy, I[0], I[1], I[2]] = c + ti.Vector(
-                            [momentum[0], momentum[1], momentum[2], weight * mass])
-                    else:
-                        self.grid_v_in[node + offset] += momentum
-                        self.grid_m[node + offset] += weight * mass
-                else:
-                    self.grid_v_in[node + offset] += momentum
-                    self.grid_m[node + offset] += weight * mass
+            offset = ti.Vector([i, j, k])
+            dpos = (ti.cast(offset, float) - fx) * dx
+            weight = w[i][0] * w[j][1] * w[k][2]
+            momentum = weight * (mass * self.v[s, p] + affine @ dpos)
+            I = node + offset
+            if ti.static(self.private_scatter):  # plain adds: a float atomic add is a compare-and-swap loop
+                c = self.grid_part[copy, I[0], I[1], I[2]]
+                self.grid_part[copy, I[0], I[1], I[2]] = c + ti.Vector(
+                    [momentum[0], momentum[1], momentum[2], weight * mass])
+            else:
+                self.grid_v_in[I] += momentum
+                self.grid_m[I] += weight * mass
+
+    @ti.func
+    def _p2g_adjoint_particle(self, p, s):
+        """p2g's adjoint, written by hand (differentiable layouts, whose stress tau is an input): from
+        the grid's momentum and mass gradients at p's nodes to v, C, tau, the volume and x at slot s.
+        With q_n = m v + A (n - fx) dx and A = -4 dt vol / dx^2 tau + m C, node n's terms are
+        w_n q_n and w_n m; fx enters through the weights and through (n - fx)."""
+        dt, dx = self._dt(p), self.dx[None]
+        inv_dx = 1.0 / dx
+        node, fx, w = self._stencil(p, s)
+        dw = [fx - 1.5, 2.0 * (1.0 - fx), fx - 0.5]  # d w / d fx, per axis
+        tau, vol, v = self.tau[p], self.vol[p], self.v[s, p]
+        mass = self.rho[p] * vol
+        stress_scale = -dt * 4.0 * inv_dx * inv_dx
+        affine = stress_scale * vol * tau + mass * self.C[s, p]
+        v_bar = ti.Vector.zero(float, 3)  # divided by the mass
+        affine_bar = ti.Matrix.zero(float, 3, 3)
+        mass_bar = 0.0
+        fx_bar = ti.Vector.zero(float, 3)
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            dpos = (ti.cast(offset, float) - fx) * dx
+            weight = w[i][0] * w[j][1] * w[k][2]
+            d_weight = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
+                                  w[i][0] * w[j][1] * dw[k][2]])
+            gv, gm = self.grid_v_in.grad[node + offset], self.grid_m.grad[node + offset]
+            u = affine.transpose() @ gv
+            per_mass = v.dot(gv) + gm
+            v_bar += weight * gv
+            affine_bar += weight * gv.outer_product(dpos)
+            mass_bar += weight * per_mass
+            fx_bar += d_weight * (mass * per_mass + u.dot(dpos)) - (weight * dx) * u
+        mass_bar += (self.C[s, p] * affine_bar).sum()
+        # plain read-modify-writes: p is this iteration's alone (a += would be an atomic add)
+        self.v.grad[s, p] = self.v.grad[s, p] + mass * v_bar
+        self.C.grad[s, p] = self.C.grad[s, p] + mass * affine_bar
+        self.tau.grad[p] = stress_scale * vol * affine_bar  # its only writer: _constitutive_update's adjoint reads it
+        self.vol.grad[p] = self.vol.grad[p] + self.rho[p] * mass_bar + stress_scale * (tau * affine_bar).sum()
+        self.x.grad[s, p] = self.x.grad[s, p] + inv_dx * fx_bar
 
     @ti.func
     def _p2g_one(self, p, s, so, t, j, copy):
         if ti.static(self.batched):
             if self._active(p, j):
-                self._p2g_particle(p, s, so, t, (0, 1, 2), copy)
+                self._p2g_particle(p, s, so, t, copy)
             elif ti.static(not self.separate_stress):  # else _constitutive_update held it
                 self._hold_deformation(p, s, so)
         else:
-            self._p2g_particle(p, s, so, t, (0, 1, 2), copy)
+            self._p2g_particle(p, s, so, t, copy)
 
     @ti.kernel
     def _p2g(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32, j: ti.i32):
@@ -704,12 +751,12 @@ class _Storage:
                 self._p2g_one(p, s, so, t, j, -1)
 
     @ti.kernel
-    def _p2g_plane(self, s: ti.i32, n: ti.i32, plane: ti.template()):
-        """p2g's scatter to the stencil's plane i = `plane` alone, for differentiable layouts: only its
-        adjoint runs (p2g's adjoint is the sum of the three planes'), and three adjoint kernels of 9
-        nodes compile about three times faster than one of 27 (Taichi's passes grow with size squared)."""
+    def _p2g_adjoint(self, s: ti.i32, n: ti.i32):
+        """Reverse of p2g for substep s (differentiable layouts): a gather per particle, no atomics.
+        Written by hand, it compiles as a forward kernel (Taichi's reverse mode of the 27-node
+        scatter took minutes to compile)."""
         for p in range(n):
-            self._p2g_particle(p, s, s + 1, 0, (plane,), -1)
+            self._p2g_adjoint_particle(p, s)
 
     @ti.func
     def _node(self, b, i, j, k):
@@ -722,12 +769,17 @@ class _Storage:
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             I = self._node(b, i, j, k)
-            if ti.static(self.private_scatter):
-                for c in range(self.copies):
-                    self.grid_part[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 4)
-            else:
-                self.grid_v_in[I] = ti.Vector.zero(float, 3)
-                self.grid_m[I] = 0.0
+            self.grid_v_in[I] = ti.Vector.zero(float, 3)
+            self.grid_m[I] = 0.0
+
+    @ti.func
+    def _take_copies(self, I):
+        """The sum of the private grids at node I, which it leaves zero for their next use."""
+        total = ti.Vector.zero(float, 4)
+        for c in range(self.copies):
+            total += self.grid_part[c, I[0], I[1], I[2]]
+            self.grid_part[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 4)
+        return total
 
     @ti.kernel
     def _sum_copies(self):
@@ -735,11 +787,18 @@ class _Storage:
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             I = self._node(b, i, j, k)
-            total = ti.Vector.zero(float, 4)
-            for c in range(self.copies):
-                total += self.grid_part[c, I[0], I[1], I[2]]
+            total = self._take_copies(I)
             self.grid_v_in[I] = ti.Vector([total[0], total[1], total[2]])
             self.grid_m[I] = total[3]
+
+    @ti.kernel
+    def _sum_copies_grad(self):
+        """grid_v_out's gradient: the sum of g2p's adjoint's private grids."""
+        for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
+                                     (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
+            I = self._node(b, i, j, k)
+            total = self._take_copies(I)
+            self.grid_v_out.grad[I] = ti.Vector([total[0], total[1], total[2]])
 
     @ti.kernel
     def _clear_grid_grad(self):
@@ -783,45 +842,68 @@ class _Storage:
             self.grid_v_out[I] = v
 
     @ti.func
-    def _gather(self, p, s, planes: ti.template()):
-        """Particle p's new velocity and affine velocity C from the stencil's nodes in the planes
-        i in `planes` (all three in the forward pass)."""
+    def _g2p_particle(self, p, s, so):
+        """Gather particle p's new velocity and affine velocity C from its 27 nodes; move it."""
         inv_dx = 1.0 / self.dx[None]
-        base = self._base(self.x[s, p])
-        node = base + self._offset(p)
-        fx = self.x[s, p] * inv_dx - ti.cast(base, float)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        node, fx, w = self._stencil(p, s)
         new_v = ti.Vector.zero(float, 3)
         new_C = ti.Matrix.zero(float, 3, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            if ti.static(i in planes):
-                offset = ti.Vector([i, j, k])
-                g_v = self.grid_v_out[node + offset]
-                weight = w[i][0] * w[j][1] * w[k][2]
-                new_v += weight * g_v
-                new_C += 4.0 * inv_dx * weight * g_v.outer_product(ti.cast(offset, float) - fx)
-        return new_v, new_C
-
-    @ti.func
-    def _g2p_particle(self, p, s, so):
-        new_v, new_C = self._gather(p, s, (0, 1, 2))
+            offset = ti.Vector([i, j, k])
+            g_v = self.grid_v_out[node + offset]
+            weight = w[i][0] * w[j][1] * w[k][2]
+            new_v += weight * g_v
+            new_C += 4.0 * inv_dx * weight * g_v.outer_product(ti.cast(offset, float) - fx)
         self.v[so, p] = new_v
         self.C[so, p] = new_C
         self.x[so, p] = self.x[s, p] + self._dt(p) * new_v
 
+    @ti.func
+    def _scatter_grad(self, I, g, copy):
+        """Add g to grid_v_out's gradient at node I: into private grid `copy` (plain adds), or with an
+        atomic add if `copy` < 0 (as p2g scatters)."""
+        if ti.static(self.private_scatter):
+            part = self.grid_part[copy, I[0], I[1], I[2]]
+            self.grid_part[copy, I[0], I[1], I[2]] = part + ti.Vector([g[0], g[1], g[2], 0.0])
+        else:
+            self.grid_v_out.grad[I] += g
+
+    @ti.func
+    def _g2p_adjoint_particle(self, p, s, copy):
+        """g2p's adjoint, written by hand: with a = dL/dv' + dt dL/dx' and B = dL/dC' at slot s + 1,
+        node n gets w_n (a + 4/dx B (n - fx)) and x gets dL/dx' + (1/dx) dL/dfx, where fx enters
+        through the weights and through (n - fx) (checked by the finite-difference gradient tests)."""
+        inv_dx = 1.0 / self.dx[None]
+        node, fx, w = self._stencil(p, s)
+        dw = [fx - 1.5, 2.0 * (1.0 - fx), fx - 0.5]  # d w / d fx, per axis
+        x_bar = self.x.grad[s + 1, p]
+        a = self.v.grad[s + 1, p] + self._dt(p) * x_bar
+        B = 4.0 * inv_dx * self.C.grad[s + 1, p]
+        fx_bar = ti.Vector.zero(float, 3)
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            r = ti.cast(offset, float) - fx
+            g_v = self.grid_v_out[node + offset]
+            weight = w[i][0] * w[j][1] * w[k][2]
+            d_weight = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
+                                  w[i][0] * w[j][1] * dw[k][2]])
+            Br = B @ r
+            self._scatter_grad(node + offset, weight * (a + Br), copy)
+            fx_bar += d_weight * g_v.dot(a + Br) - weight * (B.transpose() @ g_v)
+        self.x.grad[s, p] = self.x.grad[s, p] + x_bar + inv_dx * fx_bar  # p is this thread's alone
+
     @ti.kernel
-    def _g2p_plane(self, s: ti.i32, n: ti.i32, plane: ti.template()):
-        """g2p's gather from the stencil's plane i = `plane`, written as sums into slot s + 1, for
-        differentiable layouts: only its adjoint runs (g2p's adjoint is the sum of the three
-        planes', the plain copy of x in plane 0's), as for `_p2g_plane`."""
-        for p in range(n):
-            new_v, new_C = self._gather(p, s, (plane,))
-            self.v[s + 1, p] += new_v
-            self.C[s + 1, p] += new_C
-            if ti.static(plane == 0):
-                self.x[s + 1, p] += self.x[s, p] + self._dt(p) * new_v
-            else:
-                self.x[s + 1, p] += self._dt(p) * new_v
+    def _g2p_adjoint(self, s: ti.i32, n: ti.i32):
+        """Reverse of g2p for substep s -> s + 1 (differentiable layouts): a scatter into the grid's
+        velocity gradient, private per thread as p2g's (Taichi's own adjoint of the gather uses
+        atomic adds and cost 5x the forward gather)."""
+        if ti.static(self.private_scatter):
+            for c in range(self.copies):
+                for p in range(c * n // self.copies, (c + 1) * n // self.copies):
+                    self._g2p_adjoint_particle(p, s, c)
+        else:
+            for p in range(n):
+                self._g2p_adjoint_particle(p, s, -1)
 
     @ti.kernel
     def _g2p(self, s: ti.i32, so: ti.i32, n: ti.i32, j: ti.i32):
@@ -1153,7 +1235,8 @@ class Simulator:
                 self.k.hi[d][None] = self.k.grid_shape[d]
         else:
             self.k._bounds(s, self.n)
-        self.k._clear_grid()
+        if not self.k.private_scatter:  # the private grids are left zero by the previous substep's sum
+            self.k._clear_grid()
         for model, start, end in self._runs if self.k.separate_stress else ():
             if model in HENCKY_PLASTIC:
                 self.k._eigen_frames(s, start, end)
@@ -1167,12 +1250,11 @@ class Simulator:
         """Reverse of substep s -> s + 1: recompute its grid, then the adjoint kernels."""
         self._grid_update(s, s + 1, t)
         self.k._clear_grid_grad()
-        for plane in range(3):
-            self.k._g2p_plane.grad(s, self.n, plane)
+        self.k._g2p_adjoint(s, self.n)
+        if self.k.private_scatter:
+            self.k._sum_copies_grad()
         self.k._grid_op.grad()
-        self.k.tau.grad.fill(0)
-        for plane in range(3):
-            self.k._p2g_plane.grad(s, self.n, plane)
+        self.k._p2g_adjoint(s, self.n)
         for model, start, end in self._runs:
             self.k._constitutive_update.grad(model, s, s + 1, t, start, end, 0)
 
@@ -1298,6 +1380,7 @@ class Simulator:
             if g0 + L < total:
                 self.k._copy_slot(L, 0, self.n)
                 self._slot = 0
+        self._segment_in_slots = len(self._checkpoints) - 1  # backward need not recompute the last one
         x, v, C, F = self.particles_state(self._slot)
         final = State(*(a.astype(np.float64) for a in (x, v, C, F, self.plastic_volume_ratio(self._slot))))
         self._rollout_changes = self._changes
@@ -1349,9 +1432,11 @@ class Simulator:
         for k in reversed(range(len(starts))):
             g0 = starts[k]
             L = min(S, total - g0)
-            self._load(0, self._checkpoints[k])
-            for s in range(L):  # recompute the segment's states
-                self._substep(s, s + 1, (g0 + s) // spf)
+            if self._segment_in_slots != k:  # recompute the segment's states
+                self._load(0, self._checkpoints[k])
+                for s in range(L):
+                    self._substep(s, s + 1, (g0 + s) // spf)
+                self._segment_in_slots = k
             for f in (self.k.x, self.k.v, self.k.C, self.k.F) + ((self.k.Jp,) if self.k.has_jp else ()):
                 f.grad.fill(0)
             self.k._add_grad(L, n, *carry[:4])

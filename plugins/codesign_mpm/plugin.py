@@ -212,7 +212,8 @@ def codesign_cli(app: typer.Typer) -> None:
     ) -> None:
         """Forward particle-substeps/s (float32, float64, dense grid), (forward + backward) / forward
         with checkpointing, peak memory of a differentiable episode, first-call (compile) time, and
-        8 episodes in one batched simulator against the same 8 one after the other."""
+        8 episodes in one batched simulator against the same 8 one after the other, and p2g's
+        private-grid scatter against atomic adds."""
         from codesign_mpm.bench import SCALES, run_engine_bench
 
         for s in scale:

@@ -48,9 +48,15 @@ number is capped: more threads than copies leave the rest idle during p2g."""
 
 def scatter_copies() -> int:
     """Private grids for p2g: one per CPU thread (up to MAX_SCATTER_COPIES); 1 on a GPU, whose
-    atomic adds are native (1 means one shared grid with atomic adds)."""
+    atomic adds are native (1 means one shared grid with atomic adds). The environment variable
+    CODESIGN_SCATTER_COPIES overrides it (benchmarks compare the two scatters with it)."""
     from taichi.lang import impl
 
+    forced = os.environ.get("CODESIGN_SCATTER_COPIES")
+    if forced:
+        if not forced.isdigit() or int(forced) < 1:
+            raise ValueError(f"CODESIGN_SCATTER_COPIES must be a positive integer, got {forced!r}")
+        return int(forced)
     cfg = impl.current_cfg()
     if cfg.arch != ti.x64 and cfg.arch != ti.arm64:
         return 1
