@@ -85,6 +85,10 @@ def test_resumed_run_ends_with_the_numbers_of_an_uninterrupted_one(tmp_path):
                                                                 r"controller with output: action"),
     ({"controller": {"name": "sine"}}, r"optimizer.policy 'mlp' needs the 'mlp' controller.*got SineController"),
     ({"optimizer": {"policy": "sine"}}, r"optimizer.policy 'sine' needs the 'sine' controller"),
+    ({"optimizer": {"n_envs": 2}}, r"optimizer.n_envs: 2 needs an environment that simulates populations.*"
+                                   r"ToyEnvironment plays one at a time \(allowed here: 1\)"),
+    ({"optimizer": {"n_envs": 3}}, r"optimizer.timesteps_per_iteration: 64 is not a multiple of optimizer.n_steps x "
+                                   r"optimizer.n_envs \(32 x 3 = 96\)"),
 ])
 def test_settings_ppo_cannot_honour_fail_before_any_episode(tmp_path, change, pattern):
     recipe = {**TOY_PPO, **{k: ({**TOY_PPO[k], **v} if k == "optimizer" else v) for k, v in change.items()}}
@@ -100,6 +104,57 @@ def test_ppo_on_the_mpm_ground(tmp_path):
               "representation": {"name": "particle"}, "controller": {"name": "mlp", "hidden": [16]},
               "optimizer": {"name": "ppo", "total_timesteps": 200, "timesteps_per_iteration": 100, "n_steps": 50,
                             "batch_size": 25, "n_epochs": 2}}
+    run_dir = runner.run(resolve_recipe(recipe), run_dir=tmp_path / "run", progress=False)
+    rows = metrics(run_dir)
+    assert [r["timesteps"] for r in rows] == [100, 200] and all(r["train_episodes"] == 20 for r in rows)
+    assert runner.evaluate_best(run_dir) == [rows[-1]["best_return"]]
+
+
+@pytest.mark.slow
+def test_a_population_of_episodes_equals_episodes_one_at_a_time():
+    """EpisodesVecEnv with n_envs = 2 on an MPM environment (one batched simulator): each member's
+    rewards, observations and last observation are those of the same actions played alone, and
+    the next episodes start at once."""
+    from codesign.plugins import get_registry
+    from codesign_optimizers.ppo import EpisodesVecEnv
+
+    recipe = resolve_recipe({"name": "pop", "environment": {"name": "ground", "dx": 0.04166, "horizon": 3,
+                                                            "terrain": {"height": 0.13}},
+                             "representation": {"name": "particle"}, "controller": {"name": "mlp"},
+                             "optimizer": {"name": "ppo"}})
+    registry = get_registry()
+    env = registry.get("environment", "ground").load_factory()(recipe.sections["environment"].config)
+    rep = registry.get("representation", "particle").load_factory()(recipe.sections["representation"].config)
+    rep.setup(env.design_space, np.random.default_rng(0))
+    design = rep()
+    try:
+        actions = np.random.default_rng(1).normal(size=(env.horizon, 2, env.action_dim))
+        together = EpisodesVecEnv(env, design, bound=0.3, n_envs=2)
+        first = together.reset()
+        steps = [together.step(a) for a in actions]
+        for b in range(2):
+            alone = EpisodesVecEnv(env, design, bound=0.3, n_envs=1)
+            np.testing.assert_allclose(alone.reset()[0], first[b], rtol=1e-5, atol=1e-6)
+            for t, a in enumerate(actions):
+                observation, reward, done, info = alone.step(a[b:b + 1])
+                expected = steps[t][3][b]["terminal_observation"] if t == env.horizon - 1 else steps[t][0][b]
+                np.testing.assert_allclose(observation[0] if t < env.horizon - 1 else info[0]["terminal_observation"],
+                                           expected, rtol=1e-4, atol=1e-5)
+                np.testing.assert_allclose(reward[0], steps[t][1][b], rtol=1e-4, atol=1e-6)
+                assert done[0] == steps[t][2][b] == (t == env.horizon - 1)
+            assert alone.returns[0] == pytest.approx(together.returns[b], rel=1e-4, abs=1e-6)
+        np.testing.assert_allclose(steps[-1][0], first, rtol=1e-5, atol=1e-6)  # the next episodes have started
+    finally:
+        env.close()
+
+
+@pytest.mark.slow
+def test_ppo_with_a_population_on_the_mpm_ground(tmp_path):
+    recipe = {"name": "ground-ppo", "seed": 0,
+              "environment": {"name": "ground", "dx": 0.04166, "horizon": 5, "terrain": {"height": 0.13}},
+              "representation": {"name": "particle"}, "controller": {"name": "mlp", "hidden": [16]},
+              "optimizer": {"name": "ppo", "total_timesteps": 200, "timesteps_per_iteration": 100, "n_steps": 25,
+                            "n_envs": 4, "batch_size": 25, "n_epochs": 2}}
     run_dir = runner.run(resolve_recipe(recipe), run_dir=tmp_path / "run", progress=False)
     rows = metrics(run_dir)
     assert [r["timesteps"] for r in rows] == [100, 200] and all(r["train_episodes"] == 20 for r in rows)

@@ -695,8 +695,12 @@ class _Storage:
     def _p2g_adjoint_particle(self, p, s):
         """p2g's adjoint, written by hand (differentiable layouts, whose stress tau is an input): from
         the grid's momentum and mass gradients at p's nodes to v, C, tau, the volume and x at slot s.
-        With q_n = m v + A (n - fx) dx and A = -4 dt vol / dx^2 tau + m C, node n's terms are
-        w_n q_n and w_n m; fx enters through the weights and through (n - fx)."""
+
+        Node n = (i, j, k) gets w_n q_n and w_n m, with q_n = m v + A (n - fx) dx = c + dx A n,
+        c = m v - dx A fx and A = -4 dt vol / dx^2 tau + m C. With g_n, h_n the momentum and mass
+        gradients, S0 = sum w_n g_n and S1 = sum w_n g_n n^T: A's gradient is dx (S1 - S0 fx^T),
+        fx's is sum (dw_n / dfx) (g_n . q_n + m h_n) - dx A^T S0 (n enters as constants, so the
+        loop over nodes has no 3x3 products)."""
         dt, dx = self._dt(p), self.dx[None]
         inv_dx = 1.0 / dx
         node, fx, w = self._stencil(p, s)
@@ -705,26 +709,32 @@ class _Storage:
         mass = self.rho[p] * vol
         stress_scale = -dt * 4.0 * inv_dx * inv_dx
         affine = stress_scale * vol * tau + mass * self.C[s, p]
-        v_bar = ti.Vector.zero(float, 3)  # divided by the mass
-        affine_bar = ti.Matrix.zero(float, 3, 3)
-        mass_bar = 0.0
+        a_dx = dx * affine
+        c = mass * v - a_dx @ fx
+        S0 = ti.Vector.zero(float, 3)
+        S1 = ti.Matrix.zero(float, 3, 3)
+        h_sum = 0.0
         fx_bar = ti.Vector.zero(float, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            offset = ti.Vector([i, j, k])
-            dpos = (ti.cast(offset, float) - fx) * dx
+            o = ti.static((i, j, k))
             weight = w[i][0] * w[j][1] * w[k][2]
             d_weight = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
                                   w[i][0] * w[j][1] * dw[k][2]])
-            gv, gm = self.grid_v_in.grad[node + offset], self.grid_m.grad[node + offset]
-            u = affine.transpose() @ gv
-            per_mass = v.dot(gv) + gm
-            v_bar += weight * gv
-            affine_bar += weight * gv.outer_product(dpos)
-            mass_bar += weight * per_mass
-            fx_bar += d_weight * (mass * per_mass + u.dot(dpos)) - (weight * dx) * u
-        mass_bar += (self.C[s, p] * affine_bar).sum()
+            g, h = self.grid_v_in.grad[node + ti.Vector(o)], self.grid_m.grad[node + ti.Vector(o)]
+            q = c
+            for d in ti.static(range(3)):
+                if ti.static(o[d]):
+                    q += o[d] * ti.Vector([a_dx[0, d], a_dx[1, d], a_dx[2, d]])
+                    for e in ti.static(range(3)):
+                        S1[e, d] += (o[d] * weight) * g[e]
+            fx_bar += d_weight * (g.dot(q) + mass * h)
+            S0 += weight * g
+            h_sum += weight * h
+        affine_bar = dx * (S1 - S0.outer_product(fx))
+        fx_bar -= a_dx.transpose() @ S0
+        mass_bar = v.dot(S0) + h_sum + (self.C[s, p] * affine_bar).sum()
         # plain read-modify-writes: p is this iteration's alone (a += would be an atomic add)
-        self.v.grad[s, p] = self.v.grad[s, p] + mass * v_bar
+        self.v.grad[s, p] = self.v.grad[s, p] + mass * S0
         self.C.grad[s, p] = self.C.grad[s, p] + mass * affine_bar
         self.tau.grad[p] = stress_scale * vol * affine_bar  # its only writer: _constitutive_update's adjoint reads it
         self.vol.grad[p] = self.vol.grad[p] + self.rho[p] * mass_bar + stress_scale * (tau * affine_bar).sum()
@@ -870,26 +880,32 @@ class _Storage:
 
     @ti.func
     def _g2p_adjoint_particle(self, p, s, copy):
-        """g2p's adjoint, written by hand: with a = dL/dv' + dt dL/dx' and B = dL/dC' at slot s + 1,
-        node n gets w_n (a + 4/dx B (n - fx)) and x gets dL/dx' + (1/dx) dL/dfx, where fx enters
-        through the weights and through (n - fx) (checked by the finite-difference gradient tests)."""
+        """g2p's adjoint, written by hand: with a = dL/dv' + dt dL/dx' and B = 4/dx dL/dC' at slot
+        s + 1, node n gets w_n h_n, h_n = a + B (n - fx), and x gets dL/dx' + (1/dx) dL/dfx with
+        dL/dfx = sum (dw_n / dfx) (g_n . h_n) - B^T sum w_n g_n (fx enters through the weights and
+        through n - fx; g_n is the node's velocity)."""
         inv_dx = 1.0 / self.dx[None]
         node, fx, w = self._stencil(p, s)
         dw = [fx - 1.5, 2.0 * (1.0 - fx), fx - 0.5]  # d w / d fx, per axis
         x_bar = self.x.grad[s + 1, p]
-        a = self.v.grad[s + 1, p] + self._dt(p) * x_bar
         B = 4.0 * inv_dx * self.C.grad[s + 1, p]
+        h0 = self.v.grad[s + 1, p] + self._dt(p) * x_bar - B @ fx
+        S0 = ti.Vector.zero(float, 3)
         fx_bar = ti.Vector.zero(float, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            offset = ti.Vector([i, j, k])
-            r = ti.cast(offset, float) - fx
-            g_v = self.grid_v_out[node + offset]
+            o = ti.static((i, j, k))
             weight = w[i][0] * w[j][1] * w[k][2]
             d_weight = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
                                   w[i][0] * w[j][1] * dw[k][2]])
-            Br = B @ r
-            self._scatter_grad(node + offset, weight * (a + Br), copy)
-            fx_bar += d_weight * g_v.dot(a + Br) - weight * (B.transpose() @ g_v)
+            h = h0
+            for d in ti.static(range(3)):
+                if ti.static(o[d]):
+                    h += o[d] * ti.Vector([B[0, d], B[1, d], B[2, d]])
+            g = self.grid_v_out[node + ti.Vector(o)]
+            self._scatter_grad(node + ti.Vector(o), weight * h, copy)
+            fx_bar += d_weight * g.dot(h)
+            S0 += weight * g
+        fx_bar -= B.transpose() @ S0
         self.x.grad[s, p] = self.x.grad[s, p] + x_bar + inv_dx * fx_bar  # p is this thread's alone
 
     @ti.kernel

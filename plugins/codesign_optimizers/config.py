@@ -42,7 +42,10 @@ class PPOConfig:
         "ge": 1, "help": "environment steps in all (SB3 rounds the last iteration up to whole rollouts)"})
     timesteps_per_iteration: int = field(default=2048, metadata={
         "ge": 1, "help": "environment steps per logged, checkpointed iteration; a multiple of n_steps"})
-    n_steps: int = field(default=2048, metadata={"ge": 2, "help": "rollout buffer size"})
+    n_steps: int = field(default=2048, metadata={"ge": 2, "help": "rollout steps per episode of a rollout"})
+    n_envs: int = field(default=1, metadata={
+        "ge": 1, "help": "episodes played together; > 1 needs an environment that simulates populations (the MPM "
+                         "ones, in one batched simulator); a rollout holds n_steps x n_envs steps"})
     batch_size: int = field(default=32, metadata={"ge": 2})
     gae_lambda: float = field(default=0.95, metadata={"ge": 0, "le": 1})
     gamma: float = field(default=0.98, metadata={"gt": 0, "le": 1})

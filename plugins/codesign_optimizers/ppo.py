@@ -27,7 +27,7 @@ import torch
 from stable_baselines3 import PPO as SB3PPO
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
-from stable_baselines3.common.vec_env import DummyVecEnv
+from stable_baselines3.common.vec_env import VecEnv
 
 from codesign.artifacts import play
 from codesign.errors import RecipeError
@@ -48,68 +48,106 @@ def action_bound(controller: Controller, environment: Environment) -> float:
     return float(bound if bound is not None else 1.0)
 
 
-class FixedDesignEnv(gymnasium.Env):
-    """Any codesign `Environment` with a fixed design as a Gymnasium environment (float32 observations).
+class EpisodesVecEnv(VecEnv):
+    """`n_envs` episodes of one fixed design as SB3's vectorised environment.
 
-    Episode seeds come from the wrapper's own generator (``episode_seed``), not from Gymnasium's
-    reset seed, so episodes are reproducible, checkpointable (``episodes.bit_generator.state``)
-    and unaffected by SB3 re-seeding its vectorised env. Reaching the horizon is a truncation;
-    an earlier `done` a termination. Returns of finished episodes accumulate in ``returns``.
-    With ``time_observation`` the observation is the time ``[step * control_dt]`` (open-loop policies).
+    With more than one, the episodes run as a population (`Environment.reset_population`,
+    `step_population`): the MPM environments simulate them in one batched simulator, so a
+    rollout step costs one launch of each kernel for all of them. They start together and, all
+    reaching the horizon together, end together; the next ones start at once (SB3's auto-reset,
+    the last observation in `info["terminal_observation"]`).
+
+    Actions are SB3's Gaussian samples a, applied as bound * tanh(a): the controllers' own output
+    layer, so the policy's mean passes through exactly the function the controller applies at
+    evaluation. SB3 clips samples to the finite Box +-PRE_TANH_LIMIT, where tanh is 1 in float64.
+
+    Episode seeds come from the env's own generator (``episodes``), not from SB3's reset seeds, so
+    episodes are reproducible and checkpointable (``episodes.bit_generator.state``). Reaching the
+    horizon is a truncation; an earlier `done` a termination. Returns of finished episodes
+    accumulate in ``returns``. With ``time_observation`` the observation is the time
+    ``[step * control_dt]`` (open-loop policies).
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    render_mode = None
 
-    def __init__(self, environment: Environment, design: DesignFields | None, bound: float, episode_seed: int = 0,
-                 time_observation: bool = False) -> None:
-        self.env, self.design, self.time_observation = environment, design, time_observation
-        self.episodes = np.random.default_rng(episode_seed)
-        self.action_space = gymnasium.spaces.Box(-bound, bound, (environment.action_dim,), dtype=np.float32)
+    def __init__(self, environment: Environment, design: DesignFields | None, bound: float, n_envs: int = 1,
+                 episode_seed: int = 0, time_observation: bool = False) -> None:
         if time_observation:
-            self.observation_space = gymnasium.spaces.Box(0.0, np.inf, (1,), dtype=np.float32)
+            observation_space = gymnasium.spaces.Box(0.0, np.inf, (1,), dtype=np.float32)
         elif getattr(environment, "observation_space", None) is not None:
-            self.observation_space = environment.observation_space
+            observation_space = environment.observation_space
         else:
-            self.observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (environment.observation_dim,),
-                                                          dtype=np.float32)
+            observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (environment.observation_dim,), dtype=np.float32)
+        action_space = gymnasium.spaces.Box(-PRE_TANH_LIMIT, PRE_TANH_LIMIT, (environment.action_dim,),
+                                            dtype=np.float32)
+        super().__init__(n_envs, observation_space, action_space)
+        self.env, self.design, self.bound, self.time_observation = environment, design, bound, time_observation
+        self.episodes = np.random.default_rng(episode_seed)
         self.returns: list[float] = []
-        self.t, self.total = 0, 0.0
+        self.t = 0
+        self.totals = np.zeros(n_envs)
+        self._actions = np.zeros((n_envs, environment.action_dim))
 
-    def _observe(self, observation: np.ndarray) -> np.ndarray:
+    def _observe(self, observations: list[np.ndarray]) -> np.ndarray:
         if self.time_observation:
-            return np.array([self.t * self.env.control_dt], dtype=np.float32)
-        return np.asarray(observation, dtype=np.float32)
+            return np.full((self.num_envs, 1), self.t * self.env.control_dt, dtype=np.float32)
+        return np.stack([np.asarray(o, dtype=np.float32) for o in observations])
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
-        super().reset(seed=seed)
-        self.t, self.total = 0, 0.0
-        observation = self.env.reset(self.design, seed=int(self.episodes.integers(2**31)))
-        return self._observe(observation), {}
+    def reset(self) -> np.ndarray:
+        self.t = 0
+        self.totals[:] = 0.0
+        seed = int(self.episodes.integers(2**31))
+        if self.num_envs == 1:
+            return self._observe([self.env.reset(self.design, seed=seed)])
+        return self._observe(self.env.reset_population([self.design] * self.num_envs, seed=seed))
 
-    def step(self, action) -> tuple[np.ndarray, float, bool, bool, dict]:
-        result = self.env.step(np.asarray(action, dtype=np.float64))
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = self.bound * np.tanh(np.asarray(actions, dtype=np.float64))
+
+    def step_wait(self):
+        if self.num_envs == 1:
+            results = [self.env.step(self._actions[0])]
+        else:
+            results = self.env.step_population(self._actions)
         self.t += 1
-        self.total += float(result.reward)
+        rewards = np.array([r.reward for r in results], dtype=np.float64)
+        self.totals += rewards
         truncated = self.t >= self.env.horizon
-        terminated = bool(result.done) and not truncated
-        if truncated or terminated:
-            self.returns.append(self.total)
-        return self._observe(result.observation), float(result.reward), terminated, truncated, result.info
+        terminated = np.array([bool(r.done) and not truncated for r in results])
+        if not truncated and terminated.any() and not terminated.all():
+            raise RuntimeError(f"{type(self.env).__name__}: the episodes of a population ended at different steps "
+                               f"({int(terminated.sum())} of {self.num_envs} at step {self.t}); "
+                               "optimizer.n_envs > 1 needs episodes that end together")
+        observations = self._observe([r.observation for r in results])
+        infos = [dict(r.info) for r in results]
+        dones = np.full(self.num_envs, truncated or terminated.any())
+        if dones.all():
+            self.returns.extend(self.totals.tolist())
+            for info, last, ended in zip(infos, observations, terminated):
+                info["terminal_observation"] = last
+                info["TimeLimit.truncated"] = truncated and not ended
+            observations = self.reset()
+        return observations, rewards.astype(np.float32), dones, infos
 
+    def close(self) -> None:
+        """The run closes the environment itself."""
 
-class TanhSquash(gymnasium.ActionWrapper):
-    """Policy samples a -> bound * tanh(a): the controllers' own output layer, so the SB3 Gaussian
-    mean passes through exactly the function the controller applies at evaluation. SB3 wants a
-    finite Box and clips samples to it; at +-PRE_TANH_LIMIT tanh is 1 in float64, so clipping changes nothing."""
+    def get_attr(self, attr_name: str, indices=None) -> list:
+        return [getattr(self, attr_name)] * len(self._indices(indices))
 
-    def __init__(self, env: FixedDesignEnv) -> None:
-        super().__init__(env)
-        self.bound = float(env.action_space.high[0])
-        self.action_space = gymnasium.spaces.Box(-PRE_TANH_LIMIT, PRE_TANH_LIMIT, env.action_space.shape,
-                                                 dtype=np.float32)
+    def set_attr(self, attr_name: str, value, indices=None) -> None:
+        setattr(self, attr_name, value)
 
-    def action(self, action: np.ndarray) -> np.ndarray:
-        return self.bound * np.tanh(np.asarray(action, dtype=np.float64))
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list:
+        return [getattr(self, method_name)(*method_args, **method_kwargs) for _ in self._indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
+        return [False] * len(self._indices(indices))
+
+    def _indices(self, indices) -> list[int]:
+        if indices is None:
+            return list(range(self.num_envs))
+        return [indices] if isinstance(indices, int) else list(indices)
 
 
 class SineBasis(BaseFeaturesExtractor):
@@ -136,10 +174,13 @@ class PPO(Optimizer):
     """
 
     def __init__(self, config: PPOConfig) -> None:
-        if config.timesteps_per_iteration % config.n_steps:
+        rollout = config.n_steps * config.n_envs
+        if config.timesteps_per_iteration % rollout:
+            size = (f"optimizer.n_steps ({config.n_steps})" if config.n_envs == 1 else
+                    f"optimizer.n_steps x optimizer.n_envs ({config.n_steps} x {config.n_envs} = {rollout})")
             raise RecipeError(f"invalid recipe: optimizer.timesteps_per_iteration: {config.timesteps_per_iteration} "
-                              f"is not a multiple of optimizer.n_steps ({config.n_steps}); iterations must end on "
-                              "rollout boundaries so a resumed run continues exactly")
+                              f"is not a multiple of {size}; iterations must end on rollout boundaries so a "
+                              "resumed run continues exactly")
         self.config = config
         self.iterations = math.ceil(config.total_timesteps / config.timesteps_per_iteration)
         self.iteration = 0
@@ -148,14 +189,18 @@ class PPO(Optimizer):
               rng: np.random.Generator, run_dir: Path) -> None:
         cfg = self.config  # checked before anything simulates: PPO trains the controller only
         parameter_groups(cfg.optimize, representation, controller, supported=("control",))
+        if cfg.n_envs > 1 and not environment.batched:
+            raise RecipeError(f"invalid recipe: optimizer.n_envs: {cfg.n_envs} needs an environment that simulates "
+                              f"populations of episodes together; {type(environment).__name__} plays one at a time "
+                              "(allowed here: 1)")
         self.environment, self.controller = environment, controller
         self.actor, policy_kwargs = _policy(cfg.policy, controller)
         self.eval_seed = int(rng.integers(2**31))  # first draw: the seed `codesign eval` plays its first episode with
         ppo_seed, episode_seed = (int(s) for s in rng.integers(2**31, size=2))
         self.design = representation()
-        self.gym = FixedDesignEnv(environment, self.design, action_bound(controller, environment), episode_seed,
-                                  time_observation=cfg.policy == "sine")
-        self.model = SB3PPO("MlpPolicy", DummyVecEnv([lambda: TanhSquash(self.gym)]), n_steps=cfg.n_steps,
+        self.gym = EpisodesVecEnv(environment, self.design, action_bound(controller, environment), cfg.n_envs,
+                                  episode_seed, time_observation=cfg.policy == "sine")
+        self.model = SB3PPO("MlpPolicy", self.gym, n_steps=cfg.n_steps,
                             batch_size=cfg.batch_size, n_epochs=cfg.n_epochs, gamma=cfg.gamma,
                             gae_lambda=cfg.gae_lambda, ent_coef=cfg.ent_coef, learning_rate=cfg.learning_rate,
                             clip_range=cfg.clip_range, policy_kwargs=policy_kwargs, seed=ppo_seed, device="cpu",
