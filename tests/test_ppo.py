@@ -98,19 +98,6 @@ def test_settings_ppo_cannot_honour_fail_before_any_episode(tmp_path, change, pa
 
 
 @pytest.mark.slow
-def test_ppo_on_the_mpm_ground(tmp_path):
-    recipe = {"name": "ground-ppo", "seed": 0,
-              "environment": {"name": "ground", "dx": 0.04166, "horizon": 5, "terrain": {"height": 0.13}},
-              "representation": {"name": "particle"}, "controller": {"name": "mlp", "hidden": [16]},
-              "optimizer": {"name": "ppo", "total_timesteps": 200, "timesteps_per_iteration": 100, "n_steps": 50,
-                            "batch_size": 25, "n_epochs": 2}}
-    run_dir = runner.run(resolve_recipe(recipe), run_dir=tmp_path / "run", progress=False)
-    rows = metrics(run_dir)
-    assert [r["timesteps"] for r in rows] == [100, 200] and all(r["train_episodes"] == 20 for r in rows)
-    assert runner.evaluate_best(run_dir) == [rows[-1]["best_return"]]
-
-
-@pytest.mark.slow
 def test_a_population_of_episodes_equals_episodes_one_at_a_time():
     """EpisodesVecEnv with n_envs = 2 on an MPM environment (one batched simulator): each member's
     rewards, observations and last observation are those of the same actions played alone, and
@@ -149,12 +136,13 @@ def test_a_population_of_episodes_equals_episodes_one_at_a_time():
 
 
 @pytest.mark.slow
-def test_ppo_with_a_population_on_the_mpm_ground(tmp_path):
+@pytest.mark.parametrize("rollout", [{"n_steps": 50}, {"n_steps": 25, "n_envs": 4}], ids=["one", "population"])
+def test_ppo_on_the_mpm_ground(tmp_path, rollout):
     recipe = {"name": "ground-ppo", "seed": 0,
               "environment": {"name": "ground", "dx": 0.04166, "horizon": 5, "terrain": {"height": 0.13}},
               "representation": {"name": "particle"}, "controller": {"name": "mlp", "hidden": [16]},
-              "optimizer": {"name": "ppo", "total_timesteps": 200, "timesteps_per_iteration": 100, "n_steps": 25,
-                            "n_envs": 4, "batch_size": 25, "n_epochs": 2}}
+              "optimizer": {"name": "ppo", "total_timesteps": 200, "timesteps_per_iteration": 100, "batch_size": 25,
+                            "n_epochs": 2, **rollout}}
     run_dir = runner.run(resolve_recipe(recipe), run_dir=tmp_path / "run", progress=False)
     rows = metrics(run_dir)
     assert [r["timesteps"] for r in rows] == [100, 200] and all(r["train_episodes"] == 20 for r in rows)

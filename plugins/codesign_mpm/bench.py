@@ -97,7 +97,7 @@ def measure_backward(case: Case, frames: int = 200, repeats: int = 1) -> dict:
     return dict(measure="backward", particles=sim.n, frames=frames, substeps=substeps,
                 checkpoint_every=sim.segment, first_call_s=round(first, 3),
                 forward_s=float(np.median(fwd)), forward_backward_s=float(np.median(total)),
-                backward_over_forward=float(np.median(total) / np.median(fwd)),
+                backward_over_forward=float(np.median(total) / np.median(fwd)), repeats=repeats,
                 peak_rss_mb=round(_peak_rss_mb(), 1))
 
 
@@ -240,7 +240,8 @@ def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True
                           **_run_isolated("forward", case), **machine))
                 bar.update(1)
             case = Case(scale, "float32")
-            emit(dict(scale=scale, dtype="float32", **_run_isolated("backward", case, frames=frames), **machine))
+            emit(dict(scale=scale, dtype="float32", **_run_isolated("backward", case, frames=frames, repeats=3),
+                      **machine))
             bar.update(1)
             emit(dict(scale=scale, dtype="float32", **_run_isolated("batch", case), **machine))
             bar.update(1)

@@ -782,33 +782,22 @@ class _Storage:
             self.grid_v_in[I] = ti.Vector.zero(float, 3)
             self.grid_m[I] = 0.0
 
-    @ti.func
-    def _take_copies(self, I):
-        """The sum of the private grids at node I, which it leaves zero for their next use."""
-        total = ti.Vector.zero(float, 4)
-        for c in range(self.copies):
-            total += self.grid_part[c, I[0], I[1], I[2]]
-            self.grid_part[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 4)
-        return total
-
     @ti.kernel
-    def _sum_copies(self):
-        """The grid's momentum and mass: the sum of p2g's private grids."""
+    def _sum_copies(self, adjoint: ti.template()):
+        """Sum the private grids, and leave them zero for their next use: into the grid's momentum and
+        mass after p2g, or into grid_v_out's gradient after g2p's adjoint."""
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             I = self._node(b, i, j, k)
-            total = self._take_copies(I)
-            self.grid_v_in[I] = ti.Vector([total[0], total[1], total[2]])
-            self.grid_m[I] = total[3]
-
-    @ti.kernel
-    def _sum_copies_grad(self):
-        """grid_v_out's gradient: the sum of g2p's adjoint's private grids."""
-        for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
-                                     (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
-            I = self._node(b, i, j, k)
-            total = self._take_copies(I)
-            self.grid_v_out.grad[I] = ti.Vector([total[0], total[1], total[2]])
+            total = ti.Vector.zero(float, 4)
+            for c in range(self.copies):
+                total += self.grid_part[c, I[0], I[1], I[2]]
+                self.grid_part[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 4)
+            if ti.static(adjoint):
+                self.grid_v_out.grad[I] = ti.Vector([total[0], total[1], total[2]])
+            else:
+                self.grid_v_in[I] = ti.Vector([total[0], total[1], total[2]])
+                self.grid_m[I] = total[3]
 
     @ti.kernel
     def _clear_grid_grad(self):
@@ -870,8 +859,8 @@ class _Storage:
 
     @ti.func
     def _scatter_grad(self, I, g, copy):
-        """Add g to grid_v_out's gradient at node I: into private grid `copy` (plain adds), or with an
-        atomic add if `copy` < 0 (as p2g scatters)."""
+        """Add g to grid_v_out's gradient at node I: into private grid `copy` with plain adds where
+        the scatter is private, else with an atomic add (as p2g scatters)."""
         if ti.static(self.private_scatter):
             part = self.grid_part[copy, I[0], I[1], I[2]]
             self.grid_part[copy, I[0], I[1], I[2]] = part + ti.Vector([g[0], g[1], g[2], 0.0])
@@ -1259,7 +1248,7 @@ class Simulator:
             self.k._constitutive_update(model, s, so, t, start, end, j)
         self.k._p2g(s, so, t, self.n, j)
         if self.k.private_scatter:
-            self.k._sum_copies()
+            self.k._sum_copies(False)
         self.k._grid_op()
 
     def _substep_grad(self, s: int, t: int) -> None:
@@ -1268,7 +1257,7 @@ class Simulator:
         self.k._clear_grid_grad()
         self.k._g2p_adjoint(s, self.n)
         if self.k.private_scatter:
-            self.k._sum_copies_grad()
+            self.k._sum_copies(True)
         self.k._grid_op.grad()
         self.k._p2g_adjoint(s, self.n)
         for model, start, end in self._runs:

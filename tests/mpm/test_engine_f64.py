@@ -125,6 +125,28 @@ def test_backward_repeats_exactly_after_reusing_the_last_segment(sim, actions, w
         np.testing.assert_array_equal(getattr(second, name), getattr(first, name), err_msg=name)
 
 
+def test_the_private_scatter_equals_the_atomic_one(sim, actions, weights, monkeypatch):
+    """p2g's private grid per thread and g2p's adjoint's sum what atomic adds into the shared grid
+    sum (the GPU's scatter): the same states and gradients, up to the order of the sums."""
+    wx = np.random.default_rng(2).normal(size=(sim.n, 3)) / sim.n
+    out = {}
+    for copies in ("1", "2"):
+        monkeypatch.setenv("CODESIGN_SCATTER_COPIES", copies)
+        other = Simulator(sim.scene, sim.particles, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=64)
+        assert other.layout.scatter_copies == int(copies)
+        try:
+            final = other.rollout(actions)
+            out[copies] = (final, other.backward(com_x=weights["com_x"], com_v=weights["com_v"], x=wx))
+        finally:
+            other.close()
+    (atomic, g_atomic), (private, g_private) = out["1"], out["2"]
+    for name in ("x", "v", "C", "F"):
+        np.testing.assert_allclose(getattr(private.final, name), getattr(atomic.final, name), rtol=0, atol=1e-12)
+    for name in ("actions", "youngs_modulus", "muscle", "volume", "x0", "v0"):
+        a, b = getattr(g_atomic, name), getattr(g_private, name)
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12 * np.abs(a).max(), err_msg=name)
+
+
 def test_torch_bridge_passes_gradcheck(sim):
     torch = pytest.importorskip("torch")
     from codesign_mpm.bridge import simulate
