@@ -17,6 +17,19 @@ TOY_RECIPE = {
 }
 
 
+def _module_is_slow(item: pytest.Item) -> bool:
+    marks = getattr(getattr(item, "module", None), "pytestmark", [])
+    return any(mark.name == "slow" for mark in (marks if isinstance(marks, list) else [marks]))
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Modules marked slow as a whole (the gradient checks compile minutes of backward kernels on a
+    cold cache) go first. xdist hands test files to its workers in this order (addopts:
+    --no-loadscope-reorder; by default it sorts files by their number of tests, which put these
+    few-test files last), so their compiles overlap the rest of the suite instead of ending it."""
+    items.sort(key=lambda item: not _module_is_slow(item))  # stable: collection order otherwise
+
+
 @pytest.fixture(autouse=True)
 def fresh_plugins(monkeypatch):
     """Every test sees the installed plugins plus tests/toy_plugin.py, loaded afresh."""

@@ -19,7 +19,8 @@ whose atomic adds are native, both scatter into the grid directly.
 Particle state lives in `slots`: two (ping-pong) for plain simulation, or S + 1 for a
 differentiable segment of S substeps. A differentiable rollout stores the state only at
 segment starts (checkpoints) and recomputes each segment in the backward pass, so memory
-grows with T/S + S rather than T substeps. The grid is recomputed per substep in reverse.
+grows with T/S + S rather than T substeps. That recompute keeps each substep's grid (the touched
+box, `_store_grid`) for the reverse pass, which then runs only the stress and grid_op again.
 
 Adjoints: p2g's and g2p's are written by hand (`_p2g_adjoint`, a gather; `_g2p_adjoint`, a
 scatter, private per thread as p2g's) and checked against finite differences by the gradient
@@ -69,6 +70,7 @@ JACOBI_SWEEPS = 4  # cyclic sweeps of the 3x3 eigen-solver; b = F F^T stays near
 HENCKY_PLASTIC = (ID["sand"], ID["snow"], ID["clay"], ID["mud"])  # models with a return mapping in log strain
 JACOBI_EPS = 1e-6  # eigenvalue gaps below this count as coincident (the scale of b's round-off in float32)
 MAX_FREE_STORAGES = 4  # compiled storages kept for reuse after their simulators close; older ones are freed
+GRID_STORE_BYTES = 256 * 1024**2  # at most this much keeps a segment's grids for the reverse pass
 NORM_FLOOR = 1e-30  # |dev eps|^2 below this is treated as this (only reached where the result is masked off)
 
 
@@ -800,6 +802,46 @@ class _Storage:
                 self.grid_m[I] = total[3]
 
     @ti.kernel
+    def _store_grid(self, k: ti.i32, store: ti.types.ndarray(), box: ti.types.ndarray()):
+        """Keep this substep's grid momentum and mass over the touched box as record k of `store`
+        ((records, nodes, 4)) for the reverse pass, which then need not run p2g again; a box larger
+        than a record is marked box[k, 0] = -1, and the reverse pass recomputes that substep."""
+        lo = ti.Vector([self.lo[0][None], self.lo[1][None], self.lo[2][None]])
+        extent = ti.Vector([self.hi[0][None], self.hi[1][None], self.hi[2][None]]) - lo
+        fits = self.members * extent[0] * extent[1] * extent[2] <= store.shape[1]
+        box[k, 0] = -1
+        if fits:
+            for d in ti.static(range(3)):
+                box[k, d] = lo[d]
+                box[k, 3 + d] = lo[d] + extent[d]
+        for b, i, j, l in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
+                                     (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
+            if fits:
+                I = self._node(b, i, j, l)
+                index = ((b * extent[0] + i - lo[0]) * extent[1] + j - lo[1]) * extent[2] + l - lo[2]
+                for c in ti.static(range(3)):
+                    store[k, index, c] = self.grid_v_in[I][c]
+                store[k, index, 3] = self.grid_m[I]
+
+    @ti.kernel
+    def _load_box(self, k: ti.i32, box: ti.types.ndarray()):
+        for d in ti.static(range(3)):
+            self.lo[d][None] = box[k, d]
+            self.hi[d][None] = box[k, 3 + d]
+
+    @ti.kernel
+    def _load_grid(self, k: ti.i32, store: ti.types.ndarray()):
+        """The grid momentum and mass `_store_grid` kept as record k (after `_load_box`)."""
+        lo = ti.Vector([self.lo[0][None], self.lo[1][None], self.lo[2][None]])
+        extent = ti.Vector([self.hi[0][None], self.hi[1][None], self.hi[2][None]]) - lo
+        for b, i, j, l in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
+                                     (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
+            I = self._node(b, i, j, l)
+            index = ((b * extent[0] + i - lo[0]) * extent[1] + j - lo[1]) * extent[2] + l - lo[2]
+            self.grid_v_in[I] = ti.Vector([store[k, index, 0], store[k, index, 1], store[k, index, 2]])
+            self.grid_m[I] = store[k, index, 3]
+
+    @ti.kernel
     def _clear_grid_grad(self):
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
@@ -1055,6 +1097,7 @@ class Simulator:
         self._initial_CF: tuple[np.ndarray, np.ndarray] | None = None
         self._initial_jp: np.ndarray | None = None
         self.rollouts = 0
+        self._grid_store = self._grid_boxes = None  # the segment's grids, kept for the reverse pass
         self._changes = 0  # bumped by anything that alters the state a rollout's backward pass replays
         self._rollout_changes = -1
         self._set_constants()
@@ -1227,10 +1270,13 @@ class Simulator:
                                "was built; build a new Simulator")
 
     # ------------------------------------------------------------------ stepping
-    def _substep(self, s: int, so: int, t: int, j: int = 0) -> None:
+    def _substep(self, s: int, so: int, t: int, j: int = 0, keep_grid: bool = False) -> None:
         """One substep from slot s into slot so, holding action row t; j: the substep's index within
-        its control step (a batch member whose step is larger sits out the last ones)."""
+        its control step (a batch member whose step is larger sits out the last ones). `keep_grid`:
+        store the grid for the reverse pass (record s of the segment)."""
         self._grid_update(s, so, t, j)
+        if keep_grid:
+            self.k._store_grid(s, self._grid_store, self._grid_boxes)
         self.k._g2p(s, so, self.n, j)
 
     def _grid_update(self, s: int, so: int, t: int, j: int = 0) -> None:
@@ -1242,18 +1288,30 @@ class Simulator:
             self.k._bounds(s, self.n)
         if not self.k.private_scatter:  # the private grids are left zero by the previous substep's sum
             self.k._clear_grid()
-        for model, start, end in self._runs if self.k.separate_stress else ():
-            if model in HENCKY_PLASTIC:
-                self.k._eigen_frames(s, start, end)
-            self.k._constitutive_update(model, s, so, t, start, end, j)
+        if self.k.separate_stress:
+            self._stress_update(s, so, t, j)
         self.k._p2g(s, so, t, self.n, j)
         if self.k.private_scatter:
             self.k._sum_copies(False)
         self.k._grid_op()
 
-    def _substep_grad(self, s: int, t: int) -> None:
-        """Reverse of substep s -> s + 1: recompute its grid, then the adjoint kernels."""
-        self._grid_update(s, s + 1, t)
+    def _stress_update(self, s: int, so: int, t: int, j: int = 0) -> None:
+        """The stress (muscle included) of substep s, and the plastic models' return-mapped F in slot so."""
+        for model, start, end in self._runs:
+            if model in HENCKY_PLASTIC:
+                self.k._eigen_frames(s, start, end)
+            self.k._constitutive_update(model, s, so, t, start, end, j)
+
+    def _substep_grad(self, s: int, t: int, kept: bool) -> None:
+        """Reverse of substep s -> s + 1: its grid (kept from the segment's recompute, or recomputed),
+        then the adjoint kernels."""
+        if kept:
+            self.k._load_box(s, self._grid_boxes)
+            self.k._load_grid(s, self._grid_store)
+            self._stress_update(s, s + 1, t)
+            self.k._grid_op()
+        else:
+            self._grid_update(s, s + 1, t)
         self.k._clear_grid_grad()
         self.k._g2p_adjoint(s, self.n)
         if self.k.private_scatter:
@@ -1371,13 +1429,15 @@ class Simulator:
         total = T * spf
         self._T = T
         self._checkpoints = []
+        self._prepare_grid_store()
         self.k._probe(0, 0, self.n)
         for g0 in range(0, total, S):
             self._checkpoints.append(self._state(0))
             L = min(S, total - g0)
+            last = g0 + L == total  # still in the slots for backward: keep its grids too
             for s in range(L):
                 g = g0 + s
-                self._substep(s, s + 1, g // spf)
+                self._substep(s, s + 1, g // spf, keep_grid=last)
                 if (g + 1) % spf == 0:
                     self.k._probe(s + 1, (g + 1) // spf, self.n)
             self._slot = L
@@ -1394,6 +1454,20 @@ class Simulator:
         self._com = (self.k.com_x.to_numpy()[:T + 1] / self._tracked_mass,
                      self.k.com_v.to_numpy()[:T + 1] / self._tracked_mass)
         return Rollout(self._com[0].astype(np.float64), self._com[1].astype(np.float64), final.x, final.v, final)
+
+    def _prepare_grid_store(self) -> None:
+        """Records for a segment's grids (momentum and mass over the touched box), sized at twice the
+        volume of the particles' box now, within GRID_STORE_BYTES; a substep whose box outgrows its
+        record is recomputed in the reverse pass instead. None with a full grid region."""
+        nodes = 0
+        if self.scene.grid_region != "full":
+            self.k._bounds(0, self.n)
+            volume = math.prod(self.k.hi[d][None] - self.k.lo[d][None] for d in range(3))
+            nodes = min(2 * volume, GRID_STORE_BYTES // (self.segment * 4 * np.dtype(self.np_real).itemsize))
+        shape = (self.segment, max(nodes, 1), 4)
+        if self._grid_store is None or self._grid_store.shape != shape:
+            self._grid_store = ti.ndarray(ti.f64 if self.np_real is np.float64 else ti.f32, shape)
+            self._grid_boxes = ti.ndarray(ti.i32, (self.segment, 6))
 
     @property
     def rollout_is_current(self) -> bool:
@@ -1437,11 +1511,12 @@ class Simulator:
         for k in reversed(range(len(starts))):
             g0 = starts[k]
             L = min(S, total - g0)
-            if self._segment_in_slots != k:  # recompute the segment's states
+            if self._segment_in_slots != k:  # recompute the segment's states, keeping their grids
                 self._load(0, self._checkpoints[k])
                 for s in range(L):
-                    self._substep(s, s + 1, (g0 + s) // spf)
+                    self._substep(s, s + 1, (g0 + s) // spf, keep_grid=True)
                 self._segment_in_slots = k
+            kept = self._grid_boxes.to_numpy()[:L, 0] >= 0
             for f in (self.k.x, self.k.v, self.k.C, self.k.F) + ((self.k.Jp,) if self.k.has_jp else ()):
                 f.grad.fill(0)
             self.k._add_grad(L, n, *carry[:4])
@@ -1451,7 +1526,7 @@ class Simulator:
                 g = g0 + s
                 if (g + 1) % spf == 0:
                     self.k._probe.grad(s + 1, (g + 1) // spf, n)
-                self._substep_grad(s, g // spf)
+                self._substep_grad(s, g // spf, bool(kept[s]))
             if g0 == 0:
                 self.k._probe.grad(0, 0, n)
             carry = (np.empty((n, 3), r), np.empty((n, 3), r), np.empty((n, 3, 3), r), np.empty((n, 3, 3), r),

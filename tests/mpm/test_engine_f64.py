@@ -125,6 +125,22 @@ def test_backward_repeats_exactly_after_reusing_the_last_segment(sim, actions, w
         np.testing.assert_array_equal(getattr(second, name), getattr(first, name), err_msg=name)
 
 
+def test_gradients_are_the_same_with_the_grids_kept_or_recomputed(sim, actions, weights, monkeypatch):
+    """The reverse pass takes each substep's grid from the segment's recompute when it fits the store
+    (GRID_STORE_BYTES), else recomputes it: both give the same gradients."""
+    from codesign_mpm import engine
+
+    wx = np.random.default_rng(4).normal(size=(sim.n, 3)) / sim.n
+    kept = gradients(sim, actions, weights, wx, checkpoint_every=5)
+    assert (sim._grid_boxes.to_numpy()[:5, 0] >= 0).all(), "every substep's grid should have been kept"
+    monkeypatch.setattr(engine, "GRID_STORE_BYTES", 0)
+    recomputed = gradients(sim, actions, weights, wx, checkpoint_every=5)
+    assert (sim._grid_boxes.to_numpy()[:5, 0] < 0).all(), "no grid fits an empty store"
+    for name in ("actions", "youngs_modulus", "muscle", "volume", "x0", "v0"):
+        np.testing.assert_allclose(getattr(recomputed, name), getattr(kept, name), rtol=1e-12,
+                                   atol=1e-15 * np.abs(getattr(kept, name)).max(), err_msg=name)
+
+
 def test_the_private_scatter_equals_the_atomic_one(sim, actions, weights, monkeypatch):
     """p2g's private grid per thread and g2p's adjoint's sum what atomic adds into the shared grid
     sum (the GPU's scatter): the same states and gradients, up to the order of the sums."""
