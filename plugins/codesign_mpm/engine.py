@@ -660,6 +660,14 @@ class _Storage:
         return base + self._offset(p), fx, w
 
     @ti.func
+    def _weight_and_slope(self, w, dw, i: ti.template(), j: ti.template(), k: ti.template()):
+        """Node (i, j, k)'s weight and its derivative with respect to fx, from the per-axis weights w
+        and their derivatives dw (the adjoints' stencil)."""
+        weight = w[i][0] * w[j][1] * w[k][2]
+        return weight, ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
+                                  w[i][0] * w[j][1] * dw[k][2]])
+
+    @ti.func
     def _p2g_particle(self, p, s, so, t, copy):
         """Scatter particle p's momentum, mass and MLS force to its 27 nodes: into private grid
         `copy` with plain adds where the scatter is private (its chunk of particles is one thread's),
@@ -719,9 +727,7 @@ class _Storage:
         fx_bar = ti.Vector.zero(float, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             o = ti.static((i, j, k))
-            weight = w[i][0] * w[j][1] * w[k][2]
-            d_weight = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
-                                  w[i][0] * w[j][1] * dw[k][2]])
+            weight, d_weight = self._weight_and_slope(w, dw, i, j, k)
             g, h = self.grid_v_in.grad[node + ti.Vector(o)], self.grid_m.grad[node + ti.Vector(o)]
             q = c
             for d in ti.static(range(3)):
@@ -925,9 +931,7 @@ class _Storage:
         fx_bar = ti.Vector.zero(float, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             o = ti.static((i, j, k))
-            weight = w[i][0] * w[j][1] * w[k][2]
-            d_weight = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
-                                  w[i][0] * w[j][1] * dw[k][2]])
+            weight, d_weight = self._weight_and_slope(w, dw, i, j, k)
             h = h0
             for d in ti.static(range(3)):
                 if ti.static(o[d]):
