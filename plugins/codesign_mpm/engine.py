@@ -57,6 +57,7 @@ import numpy as np
 import taichi as ti
 
 from codesign_mpm import runtime
+from codesign_mpm.checkpoints import CheckpointStore
 from codesign_mpm.materials import ID, MATERIALS, MIN_HARDENING, N_PARAMS, model_wave_speed, muscle_modulus, viscosity
 from codesign_mpm.sampling import Particles
 from codesign_mpm.scene import Scene, SceneError, validate_scene
@@ -71,6 +72,7 @@ HENCKY_PLASTIC = (ID["sand"], ID["snow"], ID["clay"], ID["mud"])  # models with 
 JACOBI_EPS = 1e-6  # eigenvalue gaps below this count as coincident (the scale of b's round-off in float32)
 MAX_FREE_STORAGES = 4  # compiled storages kept for reuse after their simulators close; older ones are freed
 GRID_STORE_BYTES = 256 * 1024**2  # at most this much keeps a segment's grids for the reverse pass
+CHECKPOINT_MEMORY_BYTES = 128 * 1024**2  # a rollout's checkpoints beyond this go to a temporary file
 NORM_FLOOR = 1e-30  # |dev eps|^2 below this is treated as this (only reached where the result is masked off)
 
 
@@ -1102,6 +1104,7 @@ class Simulator:
         self._initial_jp: np.ndarray | None = None
         self.rollouts = 0
         self._grid_store = self._grid_boxes = None  # the segment's grids, kept for the reverse pass
+        self._checkpoints = CheckpointStore(CHECKPOINT_MEMORY_BYTES)
         self._changes = 0  # bumped by anything that alters the state a rollout's backward pass replays
         self._rollout_changes = -1
         self._set_constants()
@@ -1118,6 +1121,7 @@ class Simulator:
     def close(self) -> None:
         """Hand the compiled storage back for reuse; the simulator is unusable afterwards."""
         self._finalizer()
+        self._checkpoints.close()
         self.k = None
 
     def _set_constants(self) -> None:
@@ -1432,7 +1436,8 @@ class Simulator:
         spf = self.timestep.substeps
         total = T * spf
         self._T = T
-        self._checkpoints = []
+        self._checkpoints.clear()
+        self._checkpoints.memory_bytes = CHECKPOINT_MEMORY_BYTES
         self._prepare_grid_store()
         self.k._probe(0, 0, self.n)
         for g0 in range(0, total, S):
@@ -1487,7 +1492,7 @@ class Simulator:
         gradient of a segment's first state carries into the previous one.
         """
         self._check_alive()
-        if not getattr(self, "_checkpoints", None):
+        if not self._checkpoints:
             raise RuntimeError("backward() needs a preceding rollout()")
         if not self.rollout_is_current:
             raise RuntimeError("the simulator changed since the last rollout() (step, reset, set_design, "

@@ -141,6 +141,20 @@ def test_gradients_are_the_same_with_the_grids_kept_or_recomputed(sim, actions, 
                                    atol=1e-15 * np.abs(getattr(kept, name)).max(), err_msg=name)
 
 
+def test_gradients_are_the_same_with_checkpoints_in_a_file(sim, actions, weights, monkeypatch):
+    """Checkpoints past CHECKPOINT_MEMORY_BYTES go to a temporary file and come back bit for bit."""
+    from codesign_mpm import engine
+
+    wx = np.random.default_rng(5).normal(size=(sim.n, 3)) / sim.n
+    in_memory = gradients(sim, actions, weights, wx, checkpoint_every=3)
+    assert len(sim._checkpoints) > 2 and sim._checkpoints.spilled == 0
+    monkeypatch.setattr(engine, "CHECKPOINT_MEMORY_BYTES", 0)
+    in_file = gradients(sim, actions, weights, wx, checkpoint_every=3)
+    assert sim._checkpoints.spilled == len(sim._checkpoints), "an empty budget should put every checkpoint in the file"
+    for name in ("actions", "youngs_modulus", "muscle", "volume", "x0", "v0"):
+        np.testing.assert_array_equal(getattr(in_file, name), getattr(in_memory, name), err_msg=name)
+
+
 def test_the_private_scatter_equals_the_atomic_one(sim, actions, weights, monkeypatch):
     """p2g's private grid per thread and g2p's adjoint's sum what atomic adds into the shared grid
     sum (the GPU's scatter): the same states and gradients, up to the order of the sums."""

@@ -1,0 +1,43 @@
+"""The checkpoint store: memory up to its budget, then a temporary file, read back exactly."""
+import numpy as np
+import pytest
+
+from codesign_mpm.checkpoints import CheckpointStore
+
+
+def states(count, n=5, seed=0):
+    rng = np.random.default_rng(seed)
+    return [(rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=(n, 3, 3)), rng.normal(size=n))
+            for _ in range(count)]
+
+
+def test_checkpoints_past_the_budget_go_to_a_file_and_come_back_exactly(tmp_path):
+    saved = states(6)
+    record = sum(a.nbytes for a in saved[0])
+    store = CheckpointStore(memory_bytes=2 * record + 1, directory=str(tmp_path))
+    for state in saved:
+        store.append(state)
+    assert len(store) == 6 and store.spilled == 4
+    for k in reversed(range(6)):  # the backward pass reads them last first
+        for got, want in zip(store[k], saved[k]):
+            assert got.dtype == want.dtype and got.shape == want.shape
+            np.testing.assert_array_equal(got, want)
+    with pytest.raises(IndexError):
+        store[6]
+
+
+def test_a_cleared_store_is_refilled_by_the_next_rollout():
+    store = CheckpointStore(memory_bytes=0)
+    for state in states(3, seed=1):
+        store.append(state)
+    store.clear()
+    assert len(store) == 0
+    again = states(2, seed=2)
+    for state in again:
+        store.append(state)
+    assert len(store) == 2 and store.spilled == 2
+    np.testing.assert_array_equal(store[1][1], again[1][1])
+    with pytest.raises(ValueError, match="same arrays"):
+        store.append(states(1, n=4)[0])
+    store.close()
+    assert len(store) == 0
