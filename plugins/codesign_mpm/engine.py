@@ -670,6 +670,15 @@ class _Storage:
                                   w[i][0] * w[j][1] * dw[k][2]])
 
     @ti.func
+    def _at_node(self, c, M, o: ti.template()):
+        """c + M n for a stencil offset n = o, constant: at most three column adds, no 3x3 product."""
+        q = c
+        for d in ti.static(range(3)):
+            if ti.static(o[d]):
+                q += o[d] * ti.Vector([M[0, d], M[1, d], M[2, d]])
+        return q
+
+    @ti.func
     def _p2g_particle(self, p, s, so, t, copy):
         """Scatter particle p's momentum, mass and MLS force to its 27 nodes: into private grid
         `copy` with plain adds where the scatter is private (its chunk of particles is one thread's),
@@ -731,10 +740,9 @@ class _Storage:
             o = ti.static((i, j, k))
             weight, d_weight = self._weight_and_slope(w, dw, i, j, k)
             g, h = self.grid_v_in.grad[node + ti.Vector(o)], self.grid_m.grad[node + ti.Vector(o)]
-            q = c
+            q = self._at_node(c, a_dx, o)
             for d in ti.static(range(3)):
                 if ti.static(o[d]):
-                    q += o[d] * ti.Vector([a_dx[0, d], a_dx[1, d], a_dx[2, d]])
                     for e in ti.static(range(3)):
                         S1[e, d] += (o[d] * weight) * g[e]
             fx_bar += d_weight * (g.dot(q) + mass * h)
@@ -934,10 +942,7 @@ class _Storage:
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             o = ti.static((i, j, k))
             weight, d_weight = self._weight_and_slope(w, dw, i, j, k)
-            h = h0
-            for d in ti.static(range(3)):
-                if ti.static(o[d]):
-                    h += o[d] * ti.Vector([B[0, d], B[1, d], B[2, d]])
+            h = self._at_node(h0, B, o)
             g = self.grid_v_out[node + ti.Vector(o)]
             self._scatter_grad(node + ti.Vector(o), weight * h, copy)
             fx_bar += d_weight * g.dot(h)
