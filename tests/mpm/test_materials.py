@@ -12,16 +12,16 @@ import numpy as np
 import pytest
 
 from codesign_mpm import BodySpec, MaterialSpec, Scene, ShapeSpec, TerrainSpec, build_particles
-from codesign_mpm.engine import Simulator
+from codesign_mpm.engine import JACOBI_TOL_ULPS, Simulator
 from codesign_mpm.materials import drucker_prager_alpha, lame
 
 E, NU = 1.0e5, 0.2
 MU, LA = lame(E, NU)
 
 
-def block_scene(material: MaterialSpec, gravity=(0.0, 0.0, 0.0)) -> Scene:
+def block_scene(material: MaterialSpec, gravity=(0.0, 0.0, 0.0), dtype: str = "float64") -> Scene:
     """A 0.1 cube floating in empty space; one substep per frame so a frame is one projection."""
-    return Scene(size=[0.5, 0.5, 0.5], dx=1 / 32, dtype="float64", gravity=list(gravity), frame_dt=1e-5,
+    return Scene(size=[0.5, 0.5, 0.5], dx=1 / 32, dtype=dtype, gravity=list(gravity), frame_dt=1e-5,
                  terrain=TerrainSpec(kind="none"),
                  bodies=[BodySpec(shape=ShapeSpec(size=[0.1, 0.1, 0.1]), center=[0.25, 0.25, 0.25], material=material)])
 
@@ -35,6 +35,7 @@ def project_once(sim, F0: np.ndarray, Jp=None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rotation(deg: float) -> np.ndarray:
+    """About z (in the xy plane)."""
     c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
@@ -131,6 +132,25 @@ def test_sand_in_compression_follows_the_drucker_prager_cone(sand, stretches, pl
     expected = hencky_project(F0, drucker_prager_reference(30.0))
     assert (np.abs(expected - F0).max() > 1e-4) == plastic
     np.testing.assert_allclose(F, expected, rtol=0, atol=1e-9)
+
+
+def test_float32_eigen_frames_stop_early_without_losing_accuracy():
+    """In float32 the eigen-solve skips a b = F F^T whose off-diagonal is under JACOBI_TOL_ULPS
+    round-offs of its trace, and `_plastic` takes that off-diagonal to first order: a trial F just
+    under the bound, on the cone, still projects like the SVD reference, to float32's precision
+    (a bound 50x looser fails here)."""
+    scene = block_scene(MaterialSpec(kind="sand", youngs_modulus=E, poisson_ratio=NU, friction_angle=30.0),
+                        dtype="float32")
+    sim = Simulator(scene, build_particles(scene))
+    stretches = np.array([0.97, 1.0, 1.02])
+    bound = JACOBI_TOL_ULPS * float(np.finfo(np.float32).eps) * (stretches ** 2).sum()
+    angle = 0.5 * math.asin(2 * 0.9 * bound / abs(stretches[0] ** 2 - stretches[1] ** 2))  # |b_xy| = 0.9 bound
+    F0 = rotation(math.degrees(angle)) @ np.diag(stretches)
+    F, _ = project_once(sim, F0)
+    sim.close()
+    expected = hencky_project(F0, drucker_prager_reference(30.0))
+    assert np.abs(expected - F0).max() > 1e-3  # plastic
+    np.testing.assert_allclose(F, expected, rtol=0, atol=4e-7)  # a few round-offs
 
 
 # ---------------------------------------------------------------------------- snow
