@@ -72,9 +72,9 @@ JACOBI_SWEEPS = 4  # at most this many cyclic sweeps of the 3x3 eigen-solver (b 
 JACOBI_TOL_ULPS = 64
 """Jacobi stops once b's off-diagonal is below this many round-offs of its trace (7.6e-6 in float32):
 `_plastic` takes what is left to first order. Most particles of a settled cover then need no sweep
-(desert, paper scale: the eigen-solve 11.7 -> 2.2 ms per substep). Measured on the covers over 10
-frames, the trajectories move from the full sweeps' by a sixth of float32's own error (its distance
-from float64) at 1e-5, by as much as it at 3e-5, and 10x more at 1e-4."""
+(desert, paper scale: the eigen-solve 11.7 -> 2.2 ms per substep). Over 10 frames of each cover the
+trajectories moved from the full sweeps' by 1/5 to 1/15 of float32's own error (its rms distance from
+float64); in the desert a bound of 3e-5 moved them by up to 0.7 of it, 1e-4 by 3 to 10 times it."""
 HENCKY_PLASTIC = (ID["sand"], ID["snow"], ID["clay"], ID["mud"])  # models with a return mapping in log strain
 JACOBI_EPS = 1e-6  # eigenvalue gaps below this count as coincident (the scale of b's round-off in float32)
 MAX_FREE_STORAGES = 4  # compiled storages kept for reuse after their simulators close; older ones are freed
