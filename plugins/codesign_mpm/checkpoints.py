@@ -53,9 +53,15 @@ class CheckpointStore:
             self._in_memory.append(state)
             return
         f = self._open()
-        f.seek(self._on_disk * self._record_bytes())
-        for a in state:
-            f.write(np.ascontiguousarray(a).data)
+        try:
+            f.seek(self._on_disk * self._record_bytes())
+            for a in state:
+                f.write(np.ascontiguousarray(a).data)
+            f.flush()
+        except OSError as e:
+            raise OSError(f"could not write checkpoint {len(self)} ({self._record_bytes() / 2**20:.1f} MB) to "
+                          f"{self._where()}: {e}; set CODESIGN_CHECKPOINT_DIR to a directory with room, or "
+                          "lower the episode's frames") from e
         self._on_disk += 1
 
     def __getitem__(self, k: int) -> tuple[np.ndarray, ...]:
@@ -68,7 +74,7 @@ class CheckpointStore:
         state = tuple(np.empty(shape, dtype) for shape, dtype in self._layout)
         for a in state:
             if f.readinto(memoryview(a).cast("B")) != a.nbytes:
-                raise OSError(f"checkpoint {k} could not be read back from {self.directory or 'the temporary directory'}")
+                raise OSError(f"checkpoint {k} could not be read back from {self._where()}")
         return state
 
     def close(self) -> None:
@@ -80,6 +86,9 @@ class CheckpointStore:
 
     def _record_bytes(self) -> int:
         return sum(int(np.prod(shape)) * dtype.itemsize for shape, dtype in self._layout)
+
+    def _where(self) -> str:
+        return self.directory or f"the temporary directory ({tempfile.gettempdir()})"
 
     def _open(self) -> BinaryIO:
         if self._file is None:

@@ -41,3 +41,15 @@ def test_a_cleared_store_is_refilled_by_the_next_rollout():
         store.append(states(1, n=4)[0])
     store.close()
     assert len(store) == 0
+
+
+def test_a_checkpoint_that_cannot_be_written_names_the_directory_and_the_remedy(tmp_path, monkeypatch):
+    store = CheckpointStore(memory_bytes=0, directory=str(tmp_path))
+    store.append(states(1)[0])
+
+    def full(*args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(store._file, "write", full)
+    with pytest.raises(OSError, match=f"checkpoint 1 .* to {tmp_path}: .*No space left.*CODESIGN_CHECKPOINT_DIR"):
+        store.append(states(1)[0])
