@@ -238,7 +238,6 @@ class _Storage:
         # layout (p2g's adjoint is then the scatter's alone, differentiated plane by plane)
         self.separate_stress = self.has_params or layout.requires_grad
         self.has_jp = ID["snow"] in layout.models  # snow's plastic volume ratio is part of the state
-        # Jacobi stops once b's off-diagonal is below JACOBI_TOL_ULPS round-offs of its trace
         self.jacobi_tol = JACOBI_TOL_ULPS * float(np.finfo(np.float64 if impl.current_cfg().default_fp == ti.f64
                                                            else np.float32).eps)
         self.has_muscles = layout.has_muscles
@@ -1455,7 +1454,7 @@ class Simulator:
         total = T * spf
         self._T = T
         self._checkpoints.clear()
-        self._checkpoints.memory_bytes = CHECKPOINT_MEMORY_BYTES
+        self._checkpoints.memory_bytes = CHECKPOINT_MEMORY_BYTES  # read per rollout, as GRID_STORE_BYTES is
         self._prepare_grid_store()
         self.k._probe(0, 0, self.n)
         for g0 in range(0, total, S):
