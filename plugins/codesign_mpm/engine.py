@@ -310,6 +310,11 @@ class _Storage:
         if self.has_params:
             self.frame = mat((n,))  # eigenvectors of b (no gradient)
             self.Jp = scalar((slots, n), True)  # snow's plastic volume ratio
+        if self.has_params and grad:  # the plastic adjoint's hand-written and Taichi-differentiated parts meet here
+            self.strain = vec(3, (n,), True)  # b's principal values a, the input of _spectral_map
+            self.spectral = vec(12, (n,), True)  # its outputs (g, g', k, k')
+            self.F_bar_part = mat((n,))  # F's gradient from the eigenframe algebra, less the part through A
+            self.A_off_bar = vec(3, (n,))  # the gradient of A's off-diagonal (01, 02, 12)
         if self.batched:  # last, so the fields above keep the ids (and cached kernels) of a plain layout
             self.member = scalar((n,), dtype=ti.i32)  # which member each particle belongs to
             self.member_dt = scalar((layout.members,))
@@ -475,25 +480,49 @@ class _Storage:
         return ti.Matrix([[g[0], g01, g02], [g01, g[1], g12], [g02, g12, g[2]]])
 
     @ti.func
-    def _plastic(self, model: ti.template(), p, s, so, F, mu, la):
-        """Return mapping of one plastic model in principal Hencky strain eps = log(sigma).
+    def _lame(self, p):
+        """Particle p's Lame parameters (mu, lambda) from its Young's modulus and Poisson's ratio."""
+        E, nu = self.E[p], self.nu[p]
+        return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
-        Returns the projected F and its Kirchhoff stress. F changes only when the trial
+    @ti.func
+    def _eigenframe(self, p, F):
+        """(Q0, P = Q0^T F, A = P P^T, a): b = F F^T in the frame of its eigenvectors Q0 (from
+        _eigen_frames, a constant of the adjoint), where A is diagonal up to round-off, and A's
+        diagonal floored at J_MIN^2 (the principal values the models map)."""
+        Q0 = self.frame[p]
+        P = Q0.transpose() @ F  # F in that frame (fewer products)
+        A = P @ P.transpose()
+        return Q0, P, A, ti.max(ti.Vector([A[0, 0], A[1, 1], A[2, 2]]), J_MIN * J_MIN)
+
+    @ti.func
+    def _plastic(self, model: ti.template(), p, s, so, F, mu, la):
+        """Return mapping of one plastic model in principal Hencky strain (see `_spectral`):
+        the projected F and its Kirchhoff stress, assembled in the eigenframe."""
+        Q0, P, A, a = self._eigenframe(p, F)
+        g, g_slope, k, k_slope = self._spectral(model, p, s, so, a, mu, la, True)
+        F_new = F + Q0 @ (self._principal(A, a, g, g_slope) @ P)
+        return F_new, Q0 @ self._principal(A, a, k, k_slope) @ Q0.transpose()
+
+    @ti.func
+    def _spectral(self, model: ti.template(), p, s, so, a, mu, la, write_jp: ti.template()):
+        """One plastic model's map of b's principal values a: (g, g', k, k'), with g = exp(eps_new -
+        eps) - 1 the projection's scale less one and k the principal Kirchhoff stress, each with its
+        slope in a_i (used where eigenvalues coincide). Snow also updates J_p (written to slot so
+        if `write_jp`). The eigenframe algebra around it has a hand-written adjoint
+        (`_plastic_adjoint_front/back`); Taichi differentiates only this map (`_spectral_map`).
+
+        Works in principal Hencky strain eps = log(sigma). F changes only when the trial
         state lies outside the model's elastic region (for snow: a stretch outside its
         bounds), so a body loaded below yield springs back without permanent set. Written
         without branches or reassigned locals (masks select the case): Taichi's reverse mode
-        turns locals assigned in branches into stacks, which made this kernel take tens of
-        minutes to compile.
+        turns locals assigned in branches into stacks.
 
         The Hencky models map eps affinely per particle, eps_new = alpha eps + beta (alpha = 1
         inside the yield surface, |radius| / |dev eps| on it, 0 at the apex), so the stress
         k_i = 2 mu eps_new_i + lambda tr(eps_new) has the slope mu alpha / a_i and the
         projection's scale exp(eps_new_i - eps_i) the slope scale_i (alpha - 1) / (2 a_i).
         """
-        Q0 = self.frame[p]  # eigenvectors of b = F F^T from _eigen_frames: A is diagonal up to round-off
-        P = Q0.transpose() @ F  # F in that frame (fewer products: the adjoint's size sets its compile time)
-        A = P @ P.transpose()
-        a = ti.max(ti.Vector([A[0, 0], A[1, 1], A[2, 2]]), J_MIN * J_MIN)
         eps = 0.5 * ti.log(a)
         tr = eps.sum()
         dev = eps - tr / 3.0
@@ -533,23 +562,21 @@ class _Storage:
             inside = ti.cast(eps == eps_new, float)
             scale_slope = -(1.0 - inside) * scale / (2.0 * a)
             jp = self.Jp[s, p] * ti.exp((eps - eps_new).sum())
-            self.Jp[so, p] = jp
+            if ti.static(write_jp):
+                self.Jp[so, p] = jp
             h = ti.min(ti.max(ti.exp(prm[2] * (1.0 - jp)), MIN_HARDENING), prm[3])
             k = h * (mu * (ti.exp(2.0 * eps_new) - 1.0) + la * eps_new.sum())
             k_slope = h * mu * inside
         else:  # Hencky: tau = 2 mu eps + lambda tr(eps) I, in the principal frame
             k = 2.0 * mu * eps_new + la * eps_new.sum()
-        F_new = F + Q0 @ (self._principal(A, a, scale - 1.0, scale_slope) @ P)
-        return F_new, Q0 @ self._principal(A, a, k, k_slope) @ Q0.transpose()
+        return scale - 1.0, scale_slope, k, k_slope
 
     @ti.func
     def _constitutive(self, model: ti.template(), p, s, so):
         """(F to store, Kirchhoff stress without muscle) of particle p of `model`, from slot s."""
         C = self.C[s, p]
         F = (ti.Matrix.identity(float, 3) + self._dt(p) * C) @ self.F[s, p]
-        E, nu = self.E[p], self.nu[p]
-        mu = E / (2.0 * (1.0 + nu))
-        la = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+        mu, la = self._lame(p)
         F_new = F
         tau = ti.Matrix.zero(float, 3, 3)
         if ti.static(not MATERIALS[MODEL_NAMES[model]].plastic):
@@ -640,6 +667,135 @@ class _Storage:
             tau += self._muscle_stress(p, F, t)
         self.F[so, p] = F
         self.tau[p] = tau
+
+    @ti.func
+    def _principal_adjoint(self, M_bar, A, a, g, slope):
+        """Adjoint of `_principal`: from M's gradient to those of g, its slopes, a and A's
+        off-diagonal (01, 02, 12). M_pq = A_pq D_pq with D_pq = (dg d + s e^2) / (d^2 + e^2), d =
+        a_q - a_p, dg = g_q - g_p, s the mean slope and e = JACOBI_EPS; dD/dd = (dg - 2 d D) / (d^2 + e^2)."""
+        g_bar = ti.Vector([M_bar[0, 0], M_bar[1, 1], M_bar[2, 2]])
+        slope_bar = ti.Vector.zero(float, 3)
+        a_bar = ti.Vector.zero(float, 3)
+        off_bar = ti.Vector.zero(float, 3)
+        for pair in ti.static(range(3)):
+            p, q = ti.static(((0, 1), (0, 2), (1, 2))[pair])
+            m = M_bar[p, q] + M_bar[q, p]
+            d = a[q] - a[p]
+            den = d * d + JACOBI_EPS ** 2
+            D = ((g[q] - g[p]) * d + 0.5 * (slope[p] + slope[q]) * JACOBI_EPS ** 2) / den
+            off_bar[pair] = m * D
+            D_bar = m * A[p, q]
+            g_bar[q] += D_bar * d / den
+            g_bar[p] -= D_bar * d / den
+            slope_bar[p] += D_bar * 0.5 * JACOBI_EPS ** 2 / den
+            slope_bar[q] += D_bar * 0.5 * JACOBI_EPS ** 2 / den
+            a_bar[q] += D_bar * (g[q] - g[p] - 2.0 * d * D) / den
+            a_bar[p] -= D_bar * (g[q] - g[p] - 2.0 * d * D) / den
+        return g_bar, slope_bar, a_bar, off_bar
+
+    @ti.func
+    def _muscle_adjoint(self, p, F, t, tau_bar):
+        """Adjoint of `_muscle_stress` (action row t): adds the gradients of the fibre, the muscle
+        membership, E and the action row, and returns F's. With u = F f, a the activation, s the
+        stiffness and T the stress's gradient: active (s a u u^T) gives u: s a (T + T^T) u, a: s u.T u,
+        s: a u.T u; energy (4 s c u u^T, c = |u|^2 - 1 + a) gives u: 4 s (c (T + T^T) u + 2 (u.T u) u),
+        a: 4 s u.T u, s: 4 c u.T u."""
+        f = self.fiber[p]
+        u = F @ f
+        act = self.act[t]
+        a = act.dot(self.muscle[p])
+        s = self.muscle_ratio[p] * self.E[p]
+        q = u.dot(tau_bar @ u)
+        sym_u = (tau_bar + tau_bar.transpose()) @ u
+        u_bar = s * a * sym_u
+        a_bar = s * q
+        s_bar = a * q
+        if ti.static(self.muscle_model == "energy"):
+            c = u.dot(u) - 1.0 + a
+            u_bar = 4.0 * s * (c * sym_u + 2.0 * q * u)
+            a_bar = 4.0 * s * q
+            s_bar = 4.0 * c * q
+        if s != 0.0:  # particles without muscle contribute nothing (and skip the atomic adds)
+            self.fiber.grad[p] = self.fiber.grad[p] + F.transpose() @ u_bar
+            self.muscle.grad[p] = self.muscle.grad[p] + a_bar * act
+            self.E.grad[p] = self.E.grad[p] + self.muscle_ratio[p] * s_bar
+            self.act.grad[t] += a_bar * self.muscle[p]  # a sum over particles: atomic
+        return u_bar.outer_product(f)
+
+    @ti.kernel
+    def _plastic_adjoint_front(self, model: ti.template(), s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32,
+                               end: ti.i32):
+        """Reverse of a Hencky model's `_constitutive_update` (written by hand, as a forward kernel),
+        first part: from the gradients of the stored F (slot so) and of the stress (muscle included)
+        to those of the model's map (`spectral.grad`), part of its input's (`strain.grad`, which
+        `_spectral_map.grad` completes) and of the trial F (`F_bar_part`, `A_off_bar`).
+
+        F_new = F + Q0 M1 P and tau = Q0 M2 Q0^T: with G = Q0^T dL/dF_new, M1's gradient is G P^T,
+        P's gets M1 G, and M2's is Q0^T dL/dtau Q0."""
+        for p in range(start, end):
+            F = (ti.Matrix.identity(float, 3) + self._dt(p) * self.C[s, p]) @ self.F[s, p]
+            mu, la = self._lame(p)
+            Q0, P, A, a = self._eigenframe(p, F)
+            g, g_slope, k, k_slope = self._spectral(model, p, s, so, a, mu, la, False)
+            M1 = self._principal(A, a, g, g_slope)
+            tau_bar = self.tau.grad[p]
+            Fn_bar = self.F.grad[so, p]
+            if ti.static(self.has_muscles):
+                Fn_bar += self._muscle_adjoint(p, F + Q0 @ (M1 @ P), t, tau_bar)
+            G = Q0.transpose() @ Fn_bar
+            g_bar, g_slope_bar, a_bar, off_bar = self._principal_adjoint(G @ P.transpose(), A, a, g, g_slope)
+            k_bar, k_slope_bar, a_bar2, off_bar2 = self._principal_adjoint(Q0.transpose() @ tau_bar @ Q0, A, a, k,
+                                                                           k_slope)
+            self.strain[p] = a
+            self.strain.grad[p] = a_bar + a_bar2
+            self.spectral.grad[p] = ti.Vector([g_bar[0], g_bar[1], g_bar[2], g_slope_bar[0], g_slope_bar[1],
+                                               g_slope_bar[2], k_bar[0], k_bar[1], k_bar[2], k_slope_bar[0],
+                                               k_slope_bar[1], k_slope_bar[2]])
+            self.F_bar_part[p] = Fn_bar + Q0 @ (M1 @ G)
+            self.A_off_bar[p] = off_bar + off_bar2
+
+    @ti.kernel
+    def _spectral_map(self, model: ti.template(), s: ti.i32, so: ti.i32, start: ti.i32, end: ti.i32):
+        """A Hencky model's map (`_spectral`) from `strain` to `spectral`, in a kernel of its own so
+        that Taichi's reverse mode differentiates it alone: the eigenframe algebra around it took
+        over a minute to compile in reverse mode, the map well under a second."""
+        for p in range(start, end):
+            mu, la = self._lame(p)
+            g, g_slope, k, k_slope = self._spectral(model, p, s, so, self.strain[p], mu, la, True)
+            self.spectral[p] = ti.Vector([g[0], g[1], g[2], g_slope[0], g_slope[1], g_slope[2],
+                                          k[0], k[1], k[2], k_slope[0], k_slope[1], k_slope[2]])
+
+    @ti.kernel
+    def _plastic_adjoint_back(self, model: ti.template(), s: ti.i32, start: ti.i32, end: ti.i32):
+        """Last part of the hand-written reverse (after `_spectral_map.grad`): through A = P P^T and
+        a = max(diag A, J_MIN^2) to P, then to the trial F = (I + dt C) F_s and on to F_s and C
+        (mud's viscous stress J eta (C + C^T) included)."""
+        for p in range(start, end):
+            C, F_s, dt = self.C[s, p], self.F[s, p], self._dt(p)
+            F = (ti.Matrix.identity(float, 3) + dt * C) @ F_s
+            Q0, P, A, a = self._eigenframe(p, F)
+            a_bar = self.strain.grad[p]
+            off = self.A_off_bar[p]
+            A_bar = ti.Matrix([[a_bar[0] * ti.cast(A[0, 0] > J_MIN * J_MIN, float), off[0], off[1]],
+                               [0.0, a_bar[1] * ti.cast(A[1, 1] > J_MIN * J_MIN, float), off[2]],
+                               [0.0, 0.0, a_bar[2] * ti.cast(A[2, 2] > J_MIN * J_MIN, float)]])
+            F_bar = self.F_bar_part[p] + Q0 @ ((A_bar + A_bar.transpose()) @ P)
+            C_bar = ti.Matrix.zero(float, 3, 3)
+            if ti.static(model == ID["mud"]):
+                tau_bar, eta = self.tau.grad[p], self.params[p][1]
+                F_bar += eta * ((C + C.transpose()) * tau_bar).sum() * self._cofactor(F)
+                C_bar += F.determinant() * eta * (tau_bar + tau_bar.transpose())
+            self.F.grad[s, p] = self.F.grad[s, p] + (ti.Matrix.identity(float, 3) + dt * C).transpose() @ F_bar
+            self.C.grad[s, p] = self.C.grad[s, p] + C_bar + dt * F_bar @ F_s.transpose()
+
+    @ti.func
+    def _cofactor(self, F):
+        """d det(F) / dF, the cofactor matrix (defined for singular F too)."""
+        cof = ti.Matrix.zero(float, 3, 3)
+        for i, j in ti.static(ti.ndrange(3, 3)):
+            cof[i, j] = (F[(i + 1) % 3, (j + 1) % 3] * F[(i + 2) % 3, (j + 2) % 3]
+                         - F[(i + 1) % 3, (j + 2) % 3] * F[(i + 2) % 3, (j + 1) % 3])
+        return cof
 
     @ti.kernel
     def _constitutive_update(self, model: ti.template(), s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32,
@@ -1344,7 +1500,12 @@ class Simulator:
         self.k._grid_op.grad()
         self.k._p2g_adjoint(s, self.n)
         for model, start, end in self._runs:
-            self.k._constitutive_update.grad(model, s, s + 1, t, start, end, 0)
+            if model in HENCKY_PLASTIC:  # the eigenframe algebra by hand, the model's map by Taichi
+                self.k._plastic_adjoint_front(model, s, s + 1, t, start, end)
+                self.k._spectral_map.grad(model, s, s + 1, start, end)
+                self.k._plastic_adjoint_back(model, s, start, end)
+            else:
+                self.k._constitutive_update.grad(model, s, s + 1, t, start, end, 0)
 
     def _guard(self, slot: int, substep: int) -> None:
         """Stop with a clear error if the state went non-finite, left the grid or broke CFL."""

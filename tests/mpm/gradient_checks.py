@@ -18,6 +18,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from codesign_mpm import BodySpec, MaterialSpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec, build_particles
 from codesign_mpm.engine import Simulator
 from test_environments import make_env, random_actions  # same folder: pytest puts it on sys.path
 
@@ -142,3 +143,50 @@ def check_stress_jacobian(name: str) -> None:
     finally:
         sim.close()
         env.close()
+
+
+def check_muscled_plastic_body(muscle_model: str) -> None:
+    """A clay robot with muscles (yielding under them): the hand-written reverse of the return
+    mapping carries the muscle stress's gradients (action, membership, fibre, stiffness) through
+    the projected F, for either muscle model."""
+    scene = Scene(size=[1.0, 0.5, 0.5], dx=1 / 32, dtype="float64", muscle_model=muscle_model,
+                  terrain=TerrainSpec(kind="flat", height=0.1, friction=0.5),
+                  bodies=[BodySpec(name="robot", robot=True, shape=ShapeSpec(size=[0.16, 0.08, 0.08]),
+                                   center=[0.5, 0.0, 0.25], rest_on_terrain=True,
+                                   material=MaterialSpec(kind="clay", youngs_modulus=1e4, yield_stress=100.0),
+                                   muscles=MuscleSpec(groups=[2, 2, 1]))])
+    p = build_particles(scene)
+    sim = Simulator(scene, p, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=SEGMENT)
+    rng = np.random.default_rng(4)
+    steps = 4
+    actions = rng.uniform(-0.3, 0.3, size=(steps, p.n_actuators))
+    w_com, wx = rng.normal(size=(steps + 1, 3)), rng.normal(size=(p.n, 3)) / p.n
+    design = {k: getattr(p, k).copy() for k in ("youngs_modulus", "muscle", "fiber")}
+
+    def loss(a=actions, **changed) -> float:
+        sim.set_design(**{**design, **changed})
+        out = sim.rollout(a, checkpoint_every=5)
+        return float((w_com * out.com_x).sum() + (wx * out.x).sum())
+
+    def shifted(field, index, eps):
+        if field == "actions":
+            a = actions.copy()
+            a[index] += eps
+            return loss(a)
+        value = design[field].copy()
+        value[index] += eps
+        return loss(**{field: value})
+
+    try:
+        loss()
+        assert np.abs(sim.particles_state()[3] - np.eye(3)).max() > 1e-3, "the muscles should deform the body"
+        g = sim.backward(com_x=w_com, x=wx)
+        worked = int(np.argmax(np.abs(g.muscle).sum(1)))  # the particle whose muscle matters most
+        for field, index, eps in [("actions", (0, 1), 1e-6), ("actions", (steps - 1, 3), 1e-6),
+                                  ("muscle", (worked, 0), 1e-6), ("fiber", (worked, 2), 1e-6),
+                                  ("youngs_modulus", worked, 1e-6 * p.youngs_modulus[worked])]:
+            gradient = getattr(g, field)
+            assert_matches(gradient[index], central(lambda e: shifted(field, index, e), eps),
+                           np.abs(gradient).max(), (muscle_model, field, index))
+    finally:
+        sim.close()
