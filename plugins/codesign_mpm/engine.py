@@ -26,8 +26,11 @@ Adjoints: p2g's and g2p's are written by hand (`_p2g_adjoint`, a gather; `_g2p_a
 scatter, private per thread as p2g's) and checked against finite differences by the gradient
 tests. Taichi's reverse mode of the 27-node stencils compiled for minutes (its passes grow with
 a kernel's statements squared) and scattered with atomic adds; hand-written, they compile as
-forward kernels. Taichi differentiates the rest: the stress (its own kernel in differentiable
-layouts), the return mappings, grid_op and the probe.
+forward kernels. The plastic models' return mapping is split the same way: its eigenframe
+algebra (3x3 products, which Taichi's reverse mode took over a minute to compile) has a
+hand-written adjoint (`_plastic_adjoint_front/back`), and Taichi differentiates only each model's
+small map of principal values (`_spectral_map`). Taichi differentiates the rest: the elastic and
+water stresses (their own kernel in differentiable layouts), grid_op and the probe.
 
 Only what the scene uses is compiled: the material models present (their return mappings,
 the plastic volume ratio J_p of snow), the muscle term when the scene has actuators, the
