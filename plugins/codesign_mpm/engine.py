@@ -685,7 +685,7 @@ class _Storage:
             m = M_bar[p, q] + M_bar[q, p]
             d = a[q] - a[p]
             den = d * d + JACOBI_EPS ** 2
-            D = ((g[q] - g[p]) * d + 0.5 * (slope[p] + slope[q]) * JACOBI_EPS ** 2) / den
+            D = self._divided(g, slope, a, p, q)
             off_bar[pair] = m * D
             D_bar = m * A[p, q]
             g_bar[q] += D_bar * d / den
