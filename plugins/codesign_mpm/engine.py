@@ -791,6 +791,34 @@ class _Storage:
             self.F.grad[s, p] = self.F.grad[s, p] + (ti.Matrix.identity(float, 3) + dt * C).transpose() @ F_bar
             self.C.grad[s, p] = self.C.grad[s, p] + C_bar + dt * F_bar @ F_s.transpose()
 
+    @ti.kernel
+    def _neo_hookean_adjoint(self, s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32, end: ti.i32):
+        """Reverse of `_constitutive_update` for neo-Hookean particles (the robots' default), written by
+        hand like the plastic one: tau = mu (F F^T - I) + lambda h(J) I (+ the muscle) at the trial
+        F = (I + dt C) F_s, with h(J) = J psi'(J) = log J above J_MIN and its quadratic continuation
+        below (`_elastic_stress`)."""
+        for p in range(start, end):
+            C, F_s, dt = self.C[s, p], self.F[s, p], self._dt(p)
+            I = ti.Matrix.identity(float, 3)
+            F = (I + dt * C) @ F_s
+            tau_bar = self.tau.grad[p]
+            F_bar = self.F.grad[so, p]
+            if ti.static(self.has_muscles):
+                F_bar += self._muscle_adjoint(p, F, t, tau_bar)
+            mu, la = self._lame(p)
+            J = F.determinant()
+            slope = (1.0 - ti.log(J_MIN)) / J_MIN ** 2
+            h = J * (ti.log(ti.max(J, J_MIN)) / ti.max(J, J_MIN) + slope * ti.min(J - J_MIN, 0.0))
+            dh = ti.select(J > J_MIN, 1.0 / ti.max(J, J_MIN), ti.log(J_MIN) / J_MIN + slope * (2.0 * J - J_MIN))
+            trace_bar = tau_bar.trace()
+            F_bar += mu * (tau_bar + tau_bar.transpose()) @ F + la * dh * trace_bar * self._cofactor(F)
+            mu_bar = ((F @ F.transpose() - I) * tau_bar).sum()
+            nu = self.nu[p]
+            self.E.grad[p] = self.E.grad[p] + mu_bar / (2.0 * (1.0 + nu)) + h * trace_bar * nu / (
+                (1.0 + nu) * (1.0 - 2.0 * nu))
+            self.F.grad[s, p] = self.F.grad[s, p] + (I + dt * C).transpose() @ F_bar
+            self.C.grad[s, p] = self.C.grad[s, p] + dt * F_bar @ F_s.transpose()
+
     @ti.func
     def _cofactor(self, F):
         """d det(F) / dF, the cofactor matrix (defined for singular F too)."""
@@ -1507,6 +1535,8 @@ class Simulator:
                 self.k._plastic_adjoint_front(model, s, s + 1, t, start, end)
                 self.k._spectral_map.grad(model, s, s + 1, start, end)
                 self.k._plastic_adjoint_back(model, s, start, end)
+            elif model == ID["neo_hookean"]:
+                self.k._neo_hookean_adjoint(s, s + 1, t, start, end)
             else:
                 self.k._constitutive_update.grad(model, s, s + 1, t, start, end, 0)
 
