@@ -29,8 +29,10 @@ a kernel's statements squared) and scattered with atomic adds; hand-written, the
 forward kernels. The plastic models' return mapping is split the same way: its eigenframe
 algebra (3x3 products, which Taichi's reverse mode took over a minute to compile) has a
 hand-written adjoint (`_plastic_adjoint_front/back`), and Taichi differentiates only each model's
-small map of principal values (`_spectral_map`). Taichi differentiates the rest: the elastic and
-water stresses (their own kernel in differentiable layouts), grid_op and the probe.
+small map of principal values (`_spectral_map`). The neo-Hookean stress (the robots' default,
+muscle included) has one too (`_neo_hookean_adjoint`). Taichi differentiates the rest: the other
+elastic models' and water's stresses (their own kernel in differentiable layouts), grid_op and
+the probe.
 
 Only what the scene uses is compiled: the material models present (their return mappings,
 the plastic volume ratio J_p of snow), the muscle term when the scene has actuators, the
