@@ -446,8 +446,7 @@ class _Storage:
             # volumetric Kirchhoff stress J psi'(J) with psi = lambda log(J)^2 / 2; below J_MIN psi
             # continues as its quadratic Taylor polynomial, so J psi'(J) turns tensile for J < 0 and
             # an inverted element is pulled back through J = 0 instead of pushed further
-            low = ti.min(J - J_MIN, 0.0)
-            dpsi = ti.log(ti.max(J, J_MIN)) / ti.max(J, J_MIN) + (1.0 - ti.log(J_MIN)) / J_MIN ** 2 * low
+            dpsi, _ = self._volumetric(J)
             tau = mu * (F @ F.transpose() - I) + la * J * dpsi * I
         elif ti.static(model == MATERIALS["corotated"].id):
             R, _ = ti.polar_decompose(F)
@@ -580,7 +579,7 @@ class _Storage:
     def _constitutive(self, model: ti.template(), p, s, so):
         """(F to store, Kirchhoff stress without muscle) of particle p of `model`, from slot s."""
         C = self.C[s, p]
-        F = (ti.Matrix.identity(float, 3) + self._dt(p) * C) @ self.F[s, p]
+        F = self._trial(p, s)
         mu, la = self._lame(p)
         F_new = F
         tau = ti.Matrix.zero(float, 3, 3)
@@ -645,7 +644,7 @@ class _Storage:
     def _frame(self, s, p):
         """Eigenvectors of the trial b = F F^T of particle p in slot s (cyclic Jacobi, up to
         JACOBI_SWEEPS sweeps, none once b is diagonal to JACOBI_TOL_ULPS)."""
-        F = (ti.Matrix.identity(float, 3) + self._dt(p) * self.C[s, p]) @ self.F[s, p]
+        F = self._trial(p, s)
         A = F @ F.transpose()
         Q = ti.Matrix.identity(float, 3)
         for _ in range(JACOBI_SWEEPS):
@@ -738,7 +737,7 @@ class _Storage:
         F_new = F + Q0 M1 P and tau = Q0 M2 Q0^T: with G = Q0^T dL/dF_new, M1's gradient is G P^T,
         P's gets M1 G, and M2's is Q0^T dL/dtau Q0."""
         for p in range(start, end):
-            F = (ti.Matrix.identity(float, 3) + self._dt(p) * self.C[s, p]) @ self.F[s, p]
+            F = self._trial(p, s)
             mu, la = self._lame(p)
             Q0, P, A, a = self._eigenframe(p, F)
             g, g_slope, k, k_slope = self._spectral(model, p, s, so, a, mu, la, False)
@@ -753,9 +752,7 @@ class _Storage:
                                                                            k_slope)
             self.strain[p] = a
             self.strain.grad[p] = a_bar + a_bar2
-            self.spectral.grad[p] = ti.Vector([g_bar[0], g_bar[1], g_bar[2], g_slope_bar[0], g_slope_bar[1],
-                                               g_slope_bar[2], k_bar[0], k_bar[1], k_bar[2], k_slope_bar[0],
-                                               k_slope_bar[1], k_slope_bar[2]])
+            self.spectral.grad[p] = self._stack(g_bar, g_slope_bar, k_bar, k_slope_bar)
             self.F_bar_part[p] = Fn_bar + Q0 @ (M1 @ G)
             self.A_off_bar[p] = off_bar + off_bar2
 
@@ -767,8 +764,7 @@ class _Storage:
         for p in range(start, end):
             mu, la = self._lame(p)
             g, g_slope, k, k_slope = self._spectral(model, p, s, so, self.strain[p], mu, la, True)
-            self.spectral[p] = ti.Vector([g[0], g[1], g[2], g_slope[0], g_slope[1], g_slope[2],
-                                          k[0], k[1], k[2], k_slope[0], k_slope[1], k_slope[2]])
+            self.spectral[p] = self._stack(g, g_slope, k, k_slope)
 
     @ti.kernel
     def _plastic_adjoint_back(self, model: ti.template(), s: ti.i32, start: ti.i32, end: ti.i32):
@@ -776,8 +772,7 @@ class _Storage:
         a = max(diag A, J_MIN^2) to P, then to the trial F = (I + dt C) F_s and on to F_s and C
         (mud's viscous stress J eta (C + C^T) included)."""
         for p in range(start, end):
-            C, F_s, dt = self.C[s, p], self.F[s, p], self._dt(p)
-            F = (ti.Matrix.identity(float, 3) + dt * C) @ F_s
+            C, F = self.C[s, p], self._trial(p, s)
             Q0, P, A, a = self._eigenframe(p, F)
             a_bar = self.strain.grad[p]
             off = self.A_off_bar[p]
@@ -790,8 +785,7 @@ class _Storage:
                 tau_bar, eta = self.tau.grad[p], self.params[p][1]
                 F_bar += eta * ((C + C.transpose()) * tau_bar).sum() * self._cofactor(F)
                 C_bar += F.determinant() * eta * (tau_bar + tau_bar.transpose())
-            self.F.grad[s, p] = self.F.grad[s, p] + (ti.Matrix.identity(float, 3) + dt * C).transpose() @ F_bar
-            self.C.grad[s, p] = self.C.grad[s, p] + C_bar + dt * F_bar @ F_s.transpose()
+            self._add_trial_grad(p, s, F_bar, C_bar)
 
     @ti.kernel
     def _neo_hookean_adjoint(self, s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32, end: ti.i32):
@@ -800,26 +794,50 @@ class _Storage:
         F = (I + dt C) F_s, with h(J) = J psi'(J) = log J above J_MIN and its quadratic continuation
         below (`_elastic_stress`)."""
         for p in range(start, end):
-            C, F_s, dt = self.C[s, p], self.F[s, p], self._dt(p)
-            I = ti.Matrix.identity(float, 3)
-            F = (I + dt * C) @ F_s
+            F = self._trial(p, s)
             tau_bar = self.tau.grad[p]
             F_bar = self.F.grad[so, p]
             if ti.static(self.has_muscles):
                 F_bar += self._muscle_adjoint(p, F, t, tau_bar)
             mu, la = self._lame(p)
             J = F.determinant()
-            slope = (1.0 - ti.log(J_MIN)) / J_MIN ** 2
-            h = J * (ti.log(ti.max(J, J_MIN)) / ti.max(J, J_MIN) + slope * ti.min(J - J_MIN, 0.0))
-            dh = ti.select(J > J_MIN, 1.0 / ti.max(J, J_MIN), ti.log(J_MIN) / J_MIN + slope * (2.0 * J - J_MIN))
+            dpsi, dh = self._volumetric(J)
             trace_bar = tau_bar.trace()
             F_bar += mu * (tau_bar + tau_bar.transpose()) @ F + la * dh * trace_bar * self._cofactor(F)
-            mu_bar = ((F @ F.transpose() - I) * tau_bar).sum()
+            mu_bar = ((F @ F.transpose() - ti.Matrix.identity(float, 3)) * tau_bar).sum()
             nu = self.nu[p]
-            self.E.grad[p] = self.E.grad[p] + mu_bar / (2.0 * (1.0 + nu)) + h * trace_bar * nu / (
+            self.E.grad[p] = self.E.grad[p] + mu_bar / (2.0 * (1.0 + nu)) + J * dpsi * trace_bar * nu / (
                 (1.0 + nu) * (1.0 - 2.0 * nu))
-            self.F.grad[s, p] = self.F.grad[s, p] + (I + dt * C).transpose() @ F_bar
-            self.C.grad[s, p] = self.C.grad[s, p] + dt * F_bar @ F_s.transpose()
+            self._add_trial_grad(p, s, F_bar, ti.Matrix.zero(float, 3, 3))
+
+    @ti.func
+    def _trial(self, p, s):
+        """Particle p's trial deformation (I + dt C) F from slot s, before any return mapping."""
+        return (ti.Matrix.identity(float, 3) + self._dt(p) * self.C[s, p]) @ self.F[s, p]
+
+    @ti.func
+    def _add_trial_grad(self, p, s, F_bar, C_bar):
+        """Adjoint of `_trial`: add the trial F's gradient F_bar to F's and C's at slot s, and C_bar
+        (C's gradient through other terms) to C's; p is this iteration's alone (plain adds)."""
+        C, F_s = self.C[s, p], self.F[s, p]
+        dt = self._dt(p)
+        self.F.grad[s, p] = self.F.grad[s, p] + (ti.Matrix.identity(float, 3) + dt * C).transpose() @ F_bar
+        self.C.grad[s, p] = self.C.grad[s, p] + C_bar + dt * F_bar @ F_s.transpose()
+
+    @ti.func
+    def _volumetric(self, J):
+        """Neo-Hookean's psi'(J) with psi = log(J)^2 / 2, continued below J_MIN by its quadratic Taylor
+        polynomial (see `_elastic_stress`), and the derivative of h(J) = J psi'(J) for the adjoint."""
+        slope = (1.0 - ti.log(J_MIN)) / J_MIN ** 2
+        dpsi = ti.log(ti.max(J, J_MIN)) / ti.max(J, J_MIN) + slope * ti.min(J - J_MIN, 0.0)
+        dh = ti.select(J > J_MIN, 1.0 / ti.max(J, J_MIN), ti.log(J_MIN) / J_MIN + slope * (2.0 * J - J_MIN))
+        return dpsi, dh
+
+    @ti.func
+    def _stack(self, g, g_slope, k, k_slope):
+        """The four 3-vectors of a Hencky model's map as one 12-vector (the `spectral` field)."""
+        return ti.Vector([g[0], g[1], g[2], g_slope[0], g_slope[1], g_slope[2],
+                          k[0], k[1], k[2], k_slope[0], k_slope[1], k_slope[2]])
 
     @ti.func
     def _cofactor(self, F):
