@@ -111,6 +111,9 @@ class RobotConfig:
         metadata={"ge": 1, "min_len": 3, "help": "grid of muscle blocks along x, y, z; K = their product (box, "
                                                 "ellipsoid, unannotated files; other bodies bring their own muscles)"},
     )
+    muscle_stiffness_ratio: float = field(default=0.3, metadata={
+        "ge": 0, "help": "muscle stiffness s / E: the active stress is s a (F f)(F f)^T; admissible while s 0.3 <= "
+                         "0.3 x the shear modulus: <= 0.417 at Poisson's ratio 0.2 (codesign_mpm.materials)"})
     particles_per_cell: Optional[int] = field(default=None, metadata={
         "choices": [1, 8, 27, 64], "help": "null = the environment's quality preset's"})
     rest_on: str = field(default="terrain", metadata={

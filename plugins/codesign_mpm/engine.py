@@ -64,7 +64,8 @@ from taichi.lang import impl
 
 from codesign_mpm import runtime
 from codesign_mpm.checkpoints import CheckpointStore
-from codesign_mpm.materials import ID, MATERIALS, MIN_HARDENING, N_PARAMS, model_wave_speed, muscle_modulus, viscosity
+from codesign_mpm.materials import (ID, MATERIALS, MAX_ACTIVE_STRESS_RATIO, MIN_HARDENING, N_PARAMS, active_stress_ratio,
+                                    max_stiffness_ratio, model_wave_speed, muscle_modulus, viscosity)
 from codesign_mpm.sampling import Particles
 from codesign_mpm.scene import Scene, SceneError, validate_scene
 from codesign_mpm.terrain import height_map, normals
@@ -145,24 +146,19 @@ def time_step(scene: Scene, particles: Particles) -> TimeStep:
 
 
 def _check_muscle_stability(scene: Scene, particles: Particles, actuated: np.ndarray) -> None:
-    """Refuse active muscles whose compression at -max_action exceeds the shear modulus.
-
-    A compressive stress s a (Ff)(Ff)^T with s |a| >= mu leaves shear along the fibre without
-    stiffness (the material loses ellipticity and buckles at the grid scale: measured, a box
-    robot with s = E and a = -0.5 left the domain within 24 frames).
-    """
-    shear = particles.youngs_modulus / (2 * (1 + particles.poisson_ratio))
-    ratio = scene.max_action * particles.muscle_ratio * particles.youngs_modulus / shear
-    bad = np.flatnonzero(actuated & (ratio >= 1.0))
+    """Refuse active muscles stronger than the material can carry (`materials.MAX_ACTIVE_STRESS_RATIO`):
+    s max_action above that fraction of the shear modulus stretches fibres without bound near
+    s max_action = mu, and tears thin bodies (numerical fracture) well before it."""
+    ratio = active_stress_ratio(particles.muscle_ratio, scene.max_action, particles.poisson_ratio)
+    bad = np.flatnonzero(actuated & (ratio > MAX_ACTIVE_STRESS_RATIO * (1 + 1e-9)))
     if len(bad):
         p = bad[0]
-        allowed = 1 / (2 * (1 + particles.poisson_ratio[p]) * particles.muscle_ratio[p])
         raise SceneError(
-            f"max_action = {scene.max_action!r} is invalid for the active muscles of body "
-            f"{int(particles.body[p])}: at -max_action their compression ({ratio[p]:.3g} x the shear modulus) "
-            f"would make the material unstable; must be < {allowed:.4g} for stiffness_ratio "
-            f"{particles.muscle_ratio[p]:.4g} and Poisson's ratio {particles.poisson_ratio[p]:.4g} "
-            "(or lower muscles.stiffness_ratio)")
+            f"muscles.stiffness_ratio = {particles.muscle_ratio[p]:.4g} is invalid with max_action = "
+            f"{scene.max_action!r} for body {int(particles.body[p])}: at the bound the active stress is "
+            f"{ratio[p]:.3g} x the shear modulus; admissible: <= {MAX_ACTIVE_STRESS_RATIO}, i.e. stiffness_ratio <= "
+            f"{max_stiffness_ratio(scene.max_action, particles.poisson_ratio[p]):.4g} for Poisson's ratio "
+            f"{particles.poisson_ratio[p]:.4g} (or a smaller max_action)")
 
 
 @dataclass

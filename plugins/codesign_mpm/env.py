@@ -24,6 +24,7 @@ from codesign.registry import suggest
 from codesign_mpm.batch import BatchSimulator
 from codesign_mpm.config import CoverConfig, EnvironmentPreset, LocomotionConfig, RobotConfig, TaskConfig
 from codesign_mpm.engine import Simulator
+from codesign_mpm.materials import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio
 from codesign_mpm.observations import Observer
 from codesign_mpm.sampling import Particles, build_particles
 from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
@@ -55,6 +56,12 @@ def _check_config(config: LocomotionConfig) -> None:
     if config.terrain.height < wall:
         raise _problem("terrain.height", f"{config.terrain.height!r} is below the wall band; "
                        f"must be >= 3 dx = {wall:.4g}")
+    robot, max_action = config.robot, Scene().max_action
+    if active_stress_ratio(robot.muscle_stiffness_ratio, max_action, robot.poisson_ratio) > MAX_ACTIVE_STRESS_RATIO:
+        raise _problem("robot.muscle_stiffness_ratio", (
+            f"{robot.muscle_stiffness_ratio!r} is too strong for the body: at the action bound {max_action} its "
+            f"stress would exceed {MAX_ACTIVE_STRESS_RATIO} x the shear modulus (numerical fracture); must be <= "
+            f"{max_stiffness_ratio(max_action, robot.poisson_ratio):.4g} at poisson_ratio {robot.poisson_ratio}"))
     for key in ("direction", "up"):
         if not np.linalg.norm(getattr(config.task, key)) > 0:
             raise _problem(f"task.{key}", "must be a non-zero vector")
@@ -82,7 +89,8 @@ def robot_shape(robot: RobotConfig) -> tuple[ShapeSpec, MuscleSpec]:
     if robot.body_file is not None and robot.body != "file":
         raise _problem("robot.body_file", f"{robot.body_file!r} is set but robot.body is {robot.body!r}; "
                                           "set robot.body: file (or body_file: null)")
-    grid = MuscleSpec(groups=list(robot.muscle_groups), fiber=[1.0, 0.0, 0.0])
+    grid = MuscleSpec(groups=list(robot.muscle_groups), fiber=[1.0, 0.0, 0.0],
+                      stiffness_ratio=robot.muscle_stiffness_ratio)
     if robot.body in ("box", "ellipsoid"):
         return ShapeSpec(kind=robot.body, size=list(robot.size)), grid
     if robot.body != "file":

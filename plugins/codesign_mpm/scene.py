@@ -75,7 +75,7 @@ class MuscleSpec:
 
     groups: List[int] = field(default_factory=lambda: [2, 2, 1])
     fiber: List[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])
-    stiffness_ratio: float = 1.0
+    stiffness_ratio: float = 0.3  # at most materials.max_stiffness_ratio(max_action, nu): 0.417 at 0.3 and nu 0.2
     layout: str = "grid"  # grid: `groups` and `fiber` as above; body: the body's muscle groups and fibres
 
 

@@ -10,7 +10,7 @@ from codesign_mpm import BodySpec, MaterialSpec, MuscleSpec, Scene, ShapeSpec, T
 from codesign_mpm.engine import Simulator
 from codesign_mpm.materials import lame
 
-E, NU, RATIO = 1.0e4, 0.2, 0.7
+E, NU, RATIO = 1.0e4, 0.2, 0.4
 MU, LA = lame(E, NU)
 FIBER = np.array([1.0, 2.0, 2.0]) / 3.0
 
@@ -145,14 +145,18 @@ def test_time_step_counts_only_what_the_muscle_model_adds():
     assert speed(muscle_model="active", max_action=0.3) == pytest.approx(math.sqrt((body + 0.6 * RATIO * E) / 1e3))
 
 
-def test_compressive_actuation_beyond_the_shear_modulus_is_refused():
-    """At -max_action the active stress compresses the fibre by s max_action; at or above the shear
-    modulus mu = E / (2 (1 + nu)) the material loses stability, so the scene is refused."""
+def test_actuation_beyond_the_admissible_stress_is_refused():
+    """At the action bound the active stress must stay within MAX_ACTIVE_STRESS_RATIO (0.3) of the
+    shear modulus mu = E / (2 (1 + nu)): stronger muscles tear bodies, so the scene is refused and
+    the message names the largest admissible stiffness_ratio, 0.3 / (max_action 2 (1 + nu))."""
     from codesign_mpm import SceneError
 
     scene = Scene(size=[0.5, 0.5, 0.5], dx=1 / 32, terrain=TerrainSpec(kind="none"), max_action=1.0,
                   bodies=[BodySpec(shape=ShapeSpec(size=[0.1, 0.1, 0.1]), center=[0.25, 0.25, 0.25],
                                    material=MaterialSpec(youngs_modulus=E, poisson_ratio=NU),
                                    muscles=MuscleSpec(groups=[1, 1, 1], stiffness_ratio=RATIO))])
-    with pytest.raises(SceneError, match=r"max_action = 1.0 is invalid .* must be < 0.595"):
+    with pytest.raises(SceneError, match=r"stiffness_ratio = 0.4 is invalid with max_action = 1.0 .* "
+                                         r"stiffness_ratio <= 0.125 for Poisson's ratio 0.2"):
         Simulator(scene, build_particles(scene))
+    scene.max_action = 0.3  # 0.4 x 0.3 x 2.4 = 0.288: admissible
+    Simulator(scene, build_particles(scene)).close()
