@@ -15,13 +15,14 @@ Torch and trimesh are imported inside the functions that need them.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from codesign.errors import CodesignError
+from codesign.errors import CodesignError, DesignError
 from codesign.interfaces import Controller, DesignFields, Environment
 
 BEST = "best"
@@ -35,39 +36,66 @@ def to_numpy(value: Any) -> np.ndarray:
     return np.asarray(value, dtype=np.float64)
 
 
+EPISODE_METRICS = "episode_metrics"
+"""The key of a step's `info` under which an environment reports figures of the whole episode so far
+(e.g. the mass a body lost to numerical fracture); the last step's are the episode's."""
+
+
 @dataclass
 class EpisodeRecord:
-    episode_return: float
+    episode_return: float  # nan: the design could not be played (`DesignError`), it ranks last
     length: int
     com: np.ndarray  # (T, 3) robot centre of mass after each step
     actions: np.ndarray  # (T, K)
+    metrics: dict[str, float] = field(default_factory=dict)  # the environment's episode figures
+
+    @property
+    def played(self) -> bool:
+        return not math.isnan(self.episode_return)
+
+
+def unplayable() -> EpisodeRecord:
+    """The record of a design the environment refused: no return (nan), ranked last."""
+    return EpisodeRecord(math.nan, 0, np.zeros((0, 3)), np.zeros((0, 0)), {"unplayable": 1.0})
 
 
 def play(env: Environment, design: DesignFields | None, controller: Controller, seed: int | None = None
          ) -> EpisodeRecord:
-    """One episode without gradients: reset with `design`, act until done or the horizon."""
+    """One episode without gradients: reset with `design`, act until done or the horizon. A design
+    the environment refuses (`DesignError`) gives an unplayed record (return nan)."""
     import torch
 
     with torch.no_grad():
-        observation = env.reset(design=design, seed=seed)
+        try:
+            observation = env.reset(design=design, seed=seed)
+        except DesignError:
+            return unplayable()
         controller.reset()
-        total, coms, actions = 0.0, [], []
+        total, coms, actions, metrics = 0.0, [], [], {}
         for t in range(env.horizon):
             action = to_numpy(controller(observation, t))
             result = env.step(action)
             total += float(result.reward)
             actions.append(action)
             coms.append(to_numpy(result.info.get("com", np.full(3, np.nan))))
+            metrics = result.info.get(EPISODE_METRICS, metrics)
             observation = result.observation
             if result.done:
                 break
-    return _record(total, coms, actions)
+    return _record(total, coms, actions, metrics)
 
 
-def _record(total: float, coms: list, actions: list) -> EpisodeRecord:
-    """An episode's record from its summed reward and per-step centres of mass and actions."""
+def _record(total: float, coms: list, actions: list, metrics: dict) -> EpisodeRecord:
+    """An episode's record from its summed reward, per-step centres of mass and actions, and figures."""
     return EpisodeRecord(float(total), len(actions), np.array(coms).reshape(-1, 3),
-                         np.array(actions).reshape(len(actions), -1))
+                         np.array(actions).reshape(len(actions), -1), dict(metrics))
+
+
+def rank_last(returns: list[float]) -> list[float]:
+    """Returns with the unplayed ones (nan) just below the worst played one, for rankers."""
+    played = [r for r in returns if not math.isnan(r)]
+    floor = min(played) - 1.0 if played else 0.0
+    return [floor if math.isnan(r) else r for r in returns]
 
 
 def play_population(env: Environment, designs: list[DesignFields | None], controllers: list[Controller],
@@ -86,7 +114,11 @@ def play_population(env: Environment, designs: list[DesignFields | None], contro
     records = []
     for first in range(0, len(designs), size):
         group = slice(first, first + size)
-        records += _play_together(env, designs[group], controllers[group], seed)
+        try:
+            records += _play_together(env, designs[group], controllers[group], seed)
+        except DesignError:  # a refused design in the group: play its members one at a time
+            records += [play(env, design, controller, seed) for design, controller in
+                        zip(designs[group], controllers[group])]
     return records
 
 
@@ -96,6 +128,7 @@ def _play_together(env: Environment, designs: list, controllers: list[Controller
 
     B = len(designs)
     totals, coms, actions = np.zeros(B), [[] for _ in range(B)], [[] for _ in range(B)]
+    metrics: list[dict] = [{} for _ in range(B)]
     running = np.ones(B, dtype=bool)
     with torch.no_grad():
         observations = env.reset_population(designs, seed=seed)
@@ -110,11 +143,12 @@ def _play_together(env: Environment, designs: list, controllers: list[Controller
                 totals[b] += float(results[b].reward)
                 actions[b].append(step[b])
                 coms[b].append(to_numpy(results[b].info.get("com", np.full(3, np.nan))))
+                metrics[b] = results[b].info.get(EPISODE_METRICS, metrics[b])
                 observations[b] = results[b].observation
                 running[b] = not results[b].done
             if not running.any():
                 break
-    return [_record(totals[b], coms[b], actions[b]) for b in range(B)]
+    return [_record(totals[b], coms[b], actions[b], metrics[b]) for b in range(B)]
 
 
 def save_best(run_dir: Path, design: DesignFields, points: np.ndarray, controller: Controller,

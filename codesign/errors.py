@@ -19,3 +19,8 @@ class RecipeError(CodesignError):
 
 class PluginError(CodesignError):
     """A plugin could not be loaded."""
+
+
+class DesignError(CodesignError):
+    """A design leaves nothing the environment can simulate (empty, or every part too thin);
+    optimizers rank such a design last, an episode of it is not played."""

@@ -16,7 +16,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
@@ -37,6 +37,9 @@ class DesignSpace:
     """(N, K) the environment's own muscle membership (a box's grid, an animal's groups); None: not given."""
     fiber: np.ndarray | None = None
     """(N, 3) the environment's own unit fibre directions; None: the heading +x."""
+    keep: Callable[[np.ndarray], np.ndarray] | None = None
+    """What the environment simulates of a set of occupied points ((N,) bool -> (N,) bool), e.g.
+    only parts thick enough for its grid, in one connected body; None: all of them."""
 
     def box(self) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) corners of the workspace: `bounds`, or else the points' bounding box."""

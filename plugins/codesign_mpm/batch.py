@@ -6,9 +6,9 @@ once per individual per substep. A `BatchSimulator` puts the members' particles 
 particle array and their grids side by side into one grid (member b owns the nodes
 [b nx, (b + 1) nx) along x), so every substep launches each kernel once for the population.
 
-Members never interact and each keeps its own CFL time step: the batch runs as many substeps
-per control step as its most demanding member, and a member with a larger step sits out the
-substeps it does not need. A member's trajectory is therefore the one a plain `Simulator`
+Members never interact and each keeps its own CFL time step (following its own state, frame by
+frame): the batch runs as many substeps per control step as its most demanding member, and a
+member with a larger step sits out the substeps it does not need. A member's trajectory is therefore the one a plain `Simulator`
 gives its particles (up to the order of floating-point atomic additions). Forward only:
 differentiable rollouts use `Simulator`.
 """
@@ -76,11 +76,27 @@ class BatchSimulator(Simulator):
 
     def _use(self, particles: Particles) -> None:
         super()._use(particles)
-        k, r = self.k, self.np_real
+        k = self.k
         if k.batched:
             self._put(k.member, np.repeat(np.arange(self.size, dtype=np.int32), self.counts))
-            k.member_dt.from_numpy(np.array([t.dt for t in self.member_steps], r))
-            k.member_substeps.from_numpy(np.array([t.substeps for t in self.member_steps], np.int32))
+            self._member_substeps: list[int] = []
+            self._set_member_substeps([t.substeps for t in self.member_steps])
+
+    def _set_member_substeps(self, substeps: list[int]) -> None:
+        """Each member's substeps for the next frame (and so its dt), written only when they change."""
+        if substeps != self._member_substeps:
+            self._member_substeps = substeps
+            self.k.member_dt.from_numpy(np.array([self.scene.frame_dt / n for n in substeps], self.np_real))
+            self.k.member_substeps.from_numpy(np.array(substeps, np.int32))
+
+    def _plan_frame(self) -> int:
+        """Each member's substeps from its own state; the batch runs the most demanding member's."""
+        if not self.k.batched:
+            return super()._plan_frame()
+        waves = self.k.member_wave.to_numpy()
+        self._set_member_substeps([self._substeps_for(float(w), at_rest)
+                                   for w, at_rest in zip(waves, self.member_steps)])
+        return max(self._member_substeps)
 
     def reset_members(self, members: Sequence[Particles]) -> None:
         """Load new designs with the same particle count per member (else build a new batch)."""
@@ -108,7 +124,8 @@ class BatchSimulator(Simulator):
         if not self.k.batched:
             return super()._speeds()
         speeds = self.k.member_speed.to_numpy()
-        return [(float(v), t.dt, f" of member {b}") for b, (v, t) in enumerate(zip(speeds, self.member_steps))]
+        return [(float(v), self.scene.frame_dt / n, f" of member {b}")
+                for b, (v, n) in enumerate(zip(speeds, self._member_substeps))]
 
     def _where(self, p: int) -> str:
         b = int(np.searchsorted(self.starts, p, side="right")) - 1

@@ -172,6 +172,22 @@ class ObservationConfig:
 
 
 @dataclass
+class IntegrityConfig:
+    """What an episode in which the robot tears apart (numerical fracture, codesign_mpm.integrity)
+    gets. Torn: more than `tolerance` of its mass outside its largest connected piece."""
+
+    on_tear: str = field(default="penalize", metadata={
+        "choices": ["penalize", "terminate", "off"],
+        "help": "penalize: the return loses penalty x horizon x (torn fraction - tolerance); terminate: the "
+                "episode's reward stops at the frame it tore; off: measured and logged only"})
+    tolerance: float = field(default=0.01, metadata={
+        "ge": 0, "lt": 1, "help": "torn mass fraction that still counts as whole"})
+    penalty: float = field(default=100.0, metadata={
+        "ge": 0, "help": "penalize: return lost per control step and unit of torn mass fraction (100: a 1% tear "
+                        "costs as much as moving 1 unit/s slower, faster than any gait here)"})
+
+
+@dataclass
 class LocomotionConfig:
     """A locomotion environment. `quality` sets dx, cfl, dtype, checkpoint_every and the robot's
     and cover's particles_per_cell (codesign_mpm.quality); each of them written explicitly wins."""
@@ -200,6 +216,7 @@ class LocomotionConfig:
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     cover: Optional[CoverConfig] = field(
         default=None, metadata={"help": "ground cover layer; null = the environment's own"})
+    integrity: IntegrityConfig = field(default_factory=IntegrityConfig)
 
     def __post_init__(self) -> None:
         """Fill the settings left null from the quality preset (an unknown name: RecipeError)."""

@@ -57,6 +57,7 @@ import math
 import weakref
 from collections import OrderedDict
 from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 import taichi as ti
@@ -110,6 +111,19 @@ class TimeStep:
     stable_dt: float  # the CFL bound for this scene
 
 
+def wave_speeds(scene: Scene, particles: Particles) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) fastest wave speed of each particle at rest, and (N,) the axial modulus its muscle adds
+    (`materials.muscle_modulus`; 0 without muscle membership), computed once per distinct material."""
+    actuated = (np.abs(particles.muscle).sum(1) > 0) & (particles.muscle_ratio > 0)
+    added = np.where(actuated, muscle_modulus(scene.muscle_model, particles.muscle_ratio * particles.youngs_modulus,
+                                              scene.max_action), 0.0)
+    table = np.column_stack([particles.material, particles.youngs_modulus, particles.poisson_ratio,
+                             particles.density, added, particles.params])
+    kinds, of_particle = np.unique(table, axis=0, return_inverse=True)  # distinct materials
+    speeds = np.array([model_wave_speed(int(row[0]), *row[1:5], tuple(row[5:])) for row in kinds])
+    return speeds[of_particle.reshape(-1)], added
+
+
 def time_step(scene: Scene, particles: Particles) -> TimeStep:
     """Substep from the CFL condition with the stiffest material and fastest initial speed.
 
@@ -118,27 +132,27 @@ def time_step(scene: Scene, particles: Particles) -> TimeStep:
     without muscle membership add nothing), water's sqrt(K / rho), snow's speed at its largest
     hardening; for viscous materials also the explicit diffusion limit dt <= cfl * rho dx^2 /
     (6 eta). A forced `dt` above that bound is refused unless `allow_unstable_dt` is set.
+
+    This is the step at rest; with `scene.adaptive_dt` each frame takes at least as many substeps
+    as its current state needs (`Simulator`: speeds and stretch-dependent stiffness).
     """
     actuated = (np.abs(particles.muscle).sum(1) > 0) & (particles.muscle_ratio > 0)
     if scene.muscle_model == "active":
         _check_muscle_stability(scene, particles, actuated)
-    added = np.where(actuated, muscle_modulus(scene.muscle_model, particles.muscle_ratio * particles.youngs_modulus,
-                                              scene.max_action), 0.0)
-    table = np.column_stack([particles.material, particles.youngs_modulus, particles.poisson_ratio,
-                             particles.density, added, particles.params])
-    kinds = [(int(row[0]), *row[1:5], tuple(row[5:])) for row in np.unique(table, axis=0)]  # distinct materials
-    speeds = [model_wave_speed(m, e, nu, rho, extra, params) for m, e, nu, rho, extra, params in kinds]
+    speeds, _ = wave_speeds(scene, particles)
+    fastest = float(speeds.max(initial=0.0))
     vmax = float(np.linalg.norm(particles.v, axis=1).max(initial=0.0))
-    stable = scene.cfl * scene.dx / (max(speeds) + vmax)
-    for m, _, _, rho, _, params in kinds:
-        if viscosity(m, params) > 0:
-            stable = min(stable, scene.cfl * rho * scene.dx ** 2 / (6 * viscosity(m, params)))
+    stable = scene.cfl * scene.dx / (fastest + vmax)
+    for row in np.unique(np.column_stack([particles.material, particles.density, particles.params]), axis=0):
+        eta = viscosity(int(row[0]), tuple(row[2:]))
+        if eta > 0:
+            stable = min(stable, scene.cfl * row[1] * scene.dx ** 2 / (6 * eta))
     target = stable
     if scene.dt is not None:
         if scene.dt > stable and not scene.allow_unstable_dt:
             raise SceneError(
                 f"dt = {scene.dt!r} is invalid: the CFL bound for this scene is {stable:.4g} "
-                f"(cfl {scene.cfl}, dx {scene.dx:.4g}, wave speed {max(speeds):.4g}, speed {vmax:.4g}); "
+                f"(cfl {scene.cfl}, dx {scene.dx:.4g}, wave speed {fastest:.4g}, speed {vmax:.4g}); "
                 "use a smaller dt, leave dt null, or set allow_unstable_dt: true")
         target = scene.dt
     substeps = max(1, math.ceil(scene.frame_dt / target - 1e-9))
@@ -304,6 +318,9 @@ class _Storage:
         self.n_bad = scalar((), dtype=ti.i32)
         self.first_bad = scalar((), dtype=ti.i32)
         self.max_speed = scalar(())
+        self.wave0 = scalar((n,))  # wave speed at rest (materials.model_wave_speed)
+        self.wave_added = scalar((n,))  # the axial modulus the muscle adds at rest
+        self.max_wave = scalar(())  # the largest wave speed plus particle speed of the current state
         if self.has_params:  # every non-elastic scene gets the same fields, so they share compiled kernels
             self.params = vec(N_PARAMS, (n,))
         if self.separate_stress:
@@ -321,6 +338,7 @@ class _Storage:
             self.member_dt = scalar((layout.members,))
             self.member_substeps = scalar((layout.members,), dtype=ti.i32)  # per control step
             self.member_speed = scalar((layout.members,))
+            self.member_wave = scalar((layout.members,))
         self._tree = builder.finalize()
 
     def free(self) -> None:
@@ -348,6 +366,12 @@ class _Storage:
                 for j in ti.static(range(3)):
                     C[p, i, j] = self.C[s, p][i, j]
                     F[p, i, j] = self.F[s, p][i, j]
+
+    @ti.kernel
+    def _save_x(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                x[p, i] = self.x[s, p][i]
 
     @ti.kernel
     def _save_grad(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
@@ -1209,15 +1233,48 @@ class _Storage:
             if ti.static(self.has_jp):
                 self.Jp[dst, p] = self.Jp[src, p]
 
+    @ti.func
+    def _wave_speed(self, p, F):
+        """The fastest wave particle p carries in its current deformation F, for the CFL condition.
+
+        On the grid a particle's stiffness and mass both scale with its reference volume, so the
+        speed is sqrt(k / rho0) with k the tangent of its Kirchhoff stress in the velocity gradient.
+        Elastic models stiffen as they stretch: mu (F F^T - I)'s tangent (and the muscle's, of
+        s a (F f)(F f)^T) grows with b = F F^T's largest eigenvalue (StVK's with its square), and
+        lambda log J adds its tension: k = lambda (1 + max(log J, 0)) + (2 mu + m) lambda_max(b).
+        lambda_max(b) is bounded above by the smaller of Gershgorin's bound and
+        tr(b) / 3 + sqrt(2/3) |dev b| (exact at rest and in uniaxial states). At rest this is
+        the speed the scene's time step uses (`wave0`); plastic models and water keep that one
+        (their stresses are capped by their yield surfaces, hardening and bulk modulus)."""
+        speed = self.wave0[p]
+        model = self.material[p]
+        if model <= ti.static(ID["stvk"]):  # the elastic models
+            b = F @ F.transpose()
+            mean = b.trace() / 3.0
+            dev = b - mean * ti.Matrix.identity(float, 3)
+            largest = mean + ti.sqrt(2.0 / 3.0 * (dev * dev).sum())
+            for i in ti.static(range(3)):
+                largest = ti.min(largest, ti.abs(b[i, 0]) + ti.abs(b[i, 1]) + ti.abs(b[i, 2]))
+            if model == ti.static(ID["stvk"]):
+                largest = largest * largest
+            mu, la = self._lame(p)
+            modulus = la * (1.0 + ti.max(ti.log(ti.max(F.determinant(), J_MIN)), 0.0)) + \
+                (2.0 * mu + self.wave_added[p]) * ti.max(largest, 1.0)
+            speed = ti.sqrt(modulus / self.rho[p])
+        return speed
+
     @ti.kernel
     def _check(self, s: ti.i32, n: ti.i32):
-        """Count particles that are non-finite or outside the grid; remember the first one."""
+        """Count particles that are non-finite or outside the grid (remember the first one), and
+        find the fastest particle and the fastest wave plus particle speed of this state."""
         self.n_bad[None] = 0
         self.first_bad[None] = n
         self.max_speed[None] = 0.0
+        self.max_wave[None] = 0.0
         if ti.static(self.batched):
             for b in range(self.members):
                 self.member_speed[b] = 0.0
+                self.member_wave[b] = 0.0
         for p in range(n):
             x, v, F = self.x[s, p], self.v[s, p], self.F[s, p]
             size = self.dx[None] * ti.Vector([self.grid_shape[0] - 1, self.grid_shape[1] - 1,
@@ -1227,10 +1284,13 @@ class _Storage:
             if not (magnitude < 1e30) or not inside:
                 self.n_bad[None] += 1
                 ti.atomic_min(self.first_bad[None], p)
+            wave = v.norm() + self._wave_speed(p, F)
             if ti.static(self.batched):  # each member is checked against its own time step
                 ti.atomic_max(self.member_speed[self.member[p]], v.norm())
+                ti.atomic_max(self.member_wave[self.member[p]], wave)
             else:
                 ti.atomic_max(self.max_speed[None], v.norm())
+                ti.atomic_max(self.max_wave[None], wave)
 
 
 
@@ -1327,6 +1387,8 @@ class Simulator:
         self._checkpoints = CheckpointStore(CHECKPOINT_MEMORY_BYTES)
         self._changes = 0  # bumped by anything that alters the state a rollout's backward pass replays
         self._rollout_changes = -1
+        self.on_frame: Callable[[np.ndarray], None] | None = None
+        """Called with the positions (N, 3) after every frame of `step` and `rollout` (forward only)."""
         self._set_constants()
         self.reset(particles)
 
@@ -1346,7 +1408,7 @@ class Simulator:
 
     def _set_constants(self) -> None:
         s, k = self.scene, self.k
-        k.dt[None] = self.timestep.dt
+        self._set_dt(self.timestep.dt)
         k.dx[None] = s.dx
         k.gravity[None] = s.gravity
         k.friction[None] = s.terrain.friction
@@ -1386,6 +1448,9 @@ class Simulator:
         self._put(k.muscle, (p.muscle if self.n_actuators else np.zeros((self.n, 1))).astype(r))
         self._put(k.fiber, self._unit_fiber.astype(r))
         self._put(k.muscle_ratio, p.muscle_ratio.astype(r))
+        wave0, added = wave_speeds(self.scene, p)
+        self._put(k.wave0, wave0.astype(r))
+        self._put(k.wave_added, added.astype(r))
         if k.has_params:
             self._put(k.params, p.params.astype(r))
         self._runs = _model_runs(p.material)
@@ -1398,6 +1463,7 @@ class Simulator:
         if k.has_jp:
             k._load_jp(0, self.n, (np.ones(self.n) if self._initial_jp is None else self._initial_jp).astype(r))
         self.frame = 0
+        self.frame_substeps: list[int] = []  # substeps each frame since the reset took
         self._slot = 0
 
     def _use(self, particles: Particles) -> None:
@@ -1407,7 +1473,7 @@ class Simulator:
         self.particles = replace(particles, **{name: np.array(getattr(particles, name), copy=True)
                                                for name in Particles.__dataclass_fields__})
         self.timestep = timestep
-        self.k.dt[None] = timestep.dt
+        self._set_dt(timestep.dt)
 
     def set_initial_state(self, x=None, v=None, C=None, F=None, Jp=None) -> None:
         """Replace parts of the initial state (numpy, live particles only) and reset to it.
@@ -1556,51 +1622,77 @@ class Simulator:
             else:
                 self.k._constitutive_update.grad(model, s, s + 1, t, start, end, 0)
 
-    def _guard(self, slot: int, substep: int) -> None:
-        """Stop with a clear error if the state went non-finite, left the grid or broke CFL."""
+    def _set_dt(self, dt: float) -> None:
+        """The substep the kernels use from now on (written only when it changes)."""
+        if getattr(self, "dt", None) != dt:
+            self.k.dt[None] = dt
+            self.dt = dt
+
+    def _substeps_for(self, wave: float, at_rest: TimeStep) -> int:
+        """Substeps a frame needs for a state whose fastest wave plus particle speed is `wave`
+        (never fewer than `at_rest`'s; a forced dt or adaptive_dt off keeps those)."""
+        scene = self.scene
+        if not scene.adaptive_dt or scene.dt is not None or not wave > 0:
+            return at_rest.substeps
+        return max(at_rest.substeps, math.ceil(scene.frame_dt * wave / (scene.cfl * scene.dx) - 1e-9))
+
+    def _plan_frame(self) -> int:
+        """Substeps for the next frame from the state `_check` last looked at; sets their dt."""
+        substeps = self._substeps_for(float(self.k.max_wave[None]), self.timestep)
+        self._set_dt(self.scene.frame_dt / substeps)
+        return substeps
+
+    def _guard(self, slot: int, frame: int) -> None:
+        """Stop with a clear error if the state went non-finite, left the grid or broke CFL (the
+        `_check` it runs also measures the state for the next frame's `_plan_frame`)."""
         self.k._check(slot, self.n)
         bad = self.k.n_bad[None]
         if bad:
-            self._raise_at(self.k.first_bad[None], slot, substep,
+            self._raise_at(self.k.first_bad[None], slot, frame,
                            f"{bad} particle(s) non-finite or outside the domain")
         for speed, dt, where in self._speeds():
             if speed * dt > self.scene.dx:
                 raise SimulationError(
-                    f"at substep {substep} (frame {substep // self.timestep.substeps}) a particle{where} moves "
-                    f"{speed * dt / self.scene.dx:.2f} cells per substep (speed {speed:.4g}): the time step is "
-                    "too large for this motion; lower scene.cfl or scene.dt")
+                    f"at frame {frame} a particle{where} moves {speed * dt / self.scene.dx:.2f} cells per "
+                    f"substep (speed {speed:.4g}): the time step is too large for this motion; lower scene.cfl "
+                    "or scene.dt (or leave scene.adaptive_dt on)")
 
     def _speeds(self) -> list[tuple[float, float, str]]:
         """(fastest particle speed, its time step, where) after `_check`, per independent scene."""
-        return [(self.k.max_speed[None], self.timestep.dt, "")]
+        return [(self.k.max_speed[None], self.dt, "")]
 
     def _where(self, p: int) -> str:
         """Particle p as the error messages name it."""
         return f"particle {p}"
 
-    def _raise_at(self, p: int, slot: int, substep: int, what: str) -> None:
+    def _raise_at(self, p: int, slot: int, frame: int, what: str) -> None:
         body = int(self.particles.body[p])
         model = MODEL_NAMES[int(self.particles.material[p])]
         x = self.particles_state(slot)[0][p]
         raise SimulationError(
-            f"{what} at substep {substep} (frame {substep // self.timestep.substeps}); first: {self._where(p)} "
+            f"{what} at frame {frame}; first: {self._where(p)} "
             f"of body '{self.body_names[body]}' ({model}) at x={np.round(x, 5).tolist()}")
 
     def step(self, action: np.ndarray | None = None, frames: int = 1) -> None:
-        """Advance `frames` control steps holding `action` (K,) over their substeps (no gradients)."""
+        """Advance `frames` control steps holding `action` (K,) over their substeps (no gradients);
+        each frame takes the substeps its starting state needs (`scene.adaptive_dt`)."""
         self._check_alive()
         self._changes += 1
         self._hold(action, 0)
         if self._slot > 1:  # after a rollout: continue from its last state
             self.k._copy_slot(self._slot, 0, self.n)
             self._slot = 0
-        spf = self.timestep.substeps
+        self.k._check(self._slot, self.n)
         for _ in range(frames):
-            for j in range(spf):
+            substeps = self._plan_frame()
+            for j in range(substeps):
                 self._substep(self._slot, 1 - self._slot, 0, j)
                 self._slot = 1 - self._slot
             self.frame += 1
-            self._guard(self._slot, self.frame * spf)
+            self.frame_substeps.append(substeps)
+            self._guard(self._slot, self.frame)
+            if self.on_frame is not None:
+                self.on_frame(self.positions())
 
     def particles_state(self, slot: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(x, v, C, F) of the current (or given) slot as numpy arrays."""
@@ -1609,6 +1701,12 @@ class Simulator:
                np.empty((self.n, 3, 3), r))
         self.k._save_state(self._slot if slot is None else slot, self.n, *out)
         return out
+
+    def positions(self, slot: int | None = None) -> np.ndarray:
+        """(N, 3) positions of the current (or given) slot."""
+        x = np.empty((self.n, 3), self.np_real)
+        self.k._save_x(self._slot if slot is None else slot, self.n, x)
+        return x
 
     def plastic_volume_ratio(self, slot: int | None = None) -> np.ndarray:
         """Snow's J_p per particle (1 = uncompacted; < 1 compacted, hence hardened); ones without snow."""
@@ -1660,30 +1758,38 @@ class Simulator:
         self.k.act.from_numpy(act.astype(self.np_real))
         self.k.com_x.fill(0)
         self.k.com_v.fill(0)
-        spf = self.timestep.substeps
-        total = T * spf
         self._T = T
         self._checkpoints.clear()
         self._checkpoints.memory_bytes = CHECKPOINT_MEMORY_BYTES  # read per rollout, as GRID_STORE_BYTES is
         self._prepare_grid_store()
         self.k._probe(0, 0, self.n)
-        for g0 in range(0, total, S):
-            self._checkpoints.append(self._state(0))
-            L = min(S, total - g0)
-            last = g0 + L == total  # still in the slots for backward: keep its grids too
-            for s in range(L):
-                g = g0 + s
-                self._substep(s, s + 1, g // spf, keep_grid=last)
-                if (g + 1) % spf == 0:
-                    self.k._probe(s + 1, (g + 1) // spf, self.n)
-            self._slot = L
-            self._guard(L, g0 + L)
-            if g0 + L < total:
-                self.k._copy_slot(L, 0, self.n)
-                self._slot = 0
-        self._segment_in_slots = len(self._checkpoints) - 1  # backward need not recompute the last one
+        self.k._check(0, self.n)
+        # the substeps of each frame follow its starting state; the backward pass replays them
+        self._substep_frame: list[int] = []  # frame (action row) of every substep
+        s, keep = S, False  # slot within the segment; whether this segment keeps its grids
+        for t in range(T):
+            substeps = self._plan_frame()
+            self.frame_substeps.append(substeps)
+            for j in range(substeps):
+                if s == S:  # a new segment: checkpoint its first state
+                    if self._checkpoints:
+                        self.k._copy_slot(S, 0, self.n)
+                    self._checkpoints.append(self._state(0))
+                    s = 0
+                    # probably the last segment, still in the slots for backward: keep its grids too
+                    keep = (substeps - j) + (T - 1 - t) * substeps <= S
+                self._substep(s, s + 1, t, keep_grid=keep)
+                self._substep_frame.append(t)
+                s += 1
+            self.k._probe(s, t + 1, self.n)
+            self._guard(s, t + 1)
+            if self.on_frame is not None:
+                self.on_frame(self.positions(s))
+        self._slot = s
+        self._segment_in_slots = len(self._checkpoints) - 1 if keep else None  # backward need not recompute it
         x, v, C, F = self.particles_state(self._slot)
         final = State(*(a.astype(np.float64) for a in (x, v, C, F, self.plastic_volume_ratio(self._slot))))
+        self._final = self._state(self._slot)
         self._rollout_changes = self._changes
         self.frame = T
         self._tracked_mass = float(self._probe_density @ self.particles.volume)
@@ -1724,7 +1830,8 @@ class Simulator:
         if not self.rollout_is_current:
             raise RuntimeError("the simulator changed since the last rollout() (step, reset, set_design, "
                                "set_initial_state or stress overwrite what backward() replays); run rollout() again")
-        T, spf, S, n, r = self._T, self.timestep.substeps, self._rollout_segment, self.n, self.np_real
+        T, S, n, r = self._T, self._rollout_segment, self.n, self.np_real
+        frame_of, substeps = self._substep_frame, self.frame_substeps
         for f in (self.k.vol, self.k.E, self.k.muscle, self.k.fiber, self.k.act, self.k.com_x, self.k.com_v):
             f.grad.fill(0)
         # com = S / M with S the probe's mass-weighted sum and M the tracked mass:
@@ -1742,7 +1849,8 @@ class Simulator:
             return np.ascontiguousarray(np.zeros(shape) if g is None else np.reshape(g, shape), dtype=r)
 
         carry = (seed(x, (n, 3)), seed(v, (n, 3)), seed(C, (n, 3, 3)), seed(F, (n, 3, 3)), seed(Jp, (n,)))
-        total = T * spf
+        total = len(frame_of)
+        last_of_frame = set(np.cumsum(substeps) - 1)  # substeps after which a frame's probe ran
         starts = list(range(0, total, S))
         for k in reversed(range(len(starts))):
             g0 = starts[k]
@@ -1750,7 +1858,8 @@ class Simulator:
             if self._segment_in_slots != k:  # recompute the segment's states, keeping their grids
                 self._load(0, self._checkpoints[k])
                 for s in range(L):
-                    self._substep(s, s + 1, (g0 + s) // spf, keep_grid=True)
+                    self._set_dt(self.scene.frame_dt / substeps[frame_of[g0 + s]])
+                    self._substep(s, s + 1, frame_of[g0 + s], keep_grid=True)
                 self._segment_in_slots = k
             kept = self._grid_boxes.to_numpy()[:L, 0] >= 0
             for f in (self.k.x, self.k.v, self.k.C, self.k.F) + ((self.k.Jp,) if self.k.has_jp else ()):
@@ -1760,9 +1869,11 @@ class Simulator:
                 self.k._add_jp_grad(L, n, carry[4])
             for s in reversed(range(L)):
                 g = g0 + s
-                if (g + 1) % spf == 0:
-                    self.k._probe.grad(s + 1, (g + 1) // spf, n)
-                self._substep_grad(s, g // spf, bool(kept[s]))
+                t = frame_of[g]
+                if g in last_of_frame:
+                    self.k._probe.grad(s + 1, t + 1, n)
+                self._set_dt(self.scene.frame_dt / substeps[t])
+                self._substep_grad(s, t, bool(kept[s]))
             if g0 == 0:
                 self.k._probe.grad(0, 0, n)
             carry = (np.empty((n, 3), r), np.empty((n, 3), r), np.empty((n, 3, 3), r), np.empty((n, 3, 3), r),
@@ -1770,6 +1881,9 @@ class Simulator:
             self.k._save_grad(0, n, *carry[:4])
             if self.k.has_jp:
                 self.k._save_jp_grad(0, n, carry[4])
+        if self._segment_in_slots != len(starts) - 1:  # the slots hold an earlier segment's recompute:
+            self._load(0, self._final)  # continue (step, particles_state, stress) from the rollout's end
+            self._slot, self._segment_in_slots = 0, None
         K = self.n_actuators
         fiber = self.k.fiber.grad.to_numpy()[:n].astype(np.float64)
         unit = self._unit_fiber

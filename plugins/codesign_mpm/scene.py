@@ -122,6 +122,7 @@ class Scene:
     cfl: float = 0.4  # dt <= cfl * dx / (wave speed + speed)
     dt: Optional[float] = None  # force a (smaller) substep
     allow_unstable_dt: bool = False  # accept a dt above the CFL bound (you were warned)
+    adaptive_dt: bool = True  # each frame takes as many substeps as its state needs (speeds, stretch); never fewer than at rest
     dtype: str = "float32"
     arch: str = "cpu"
     grid_region: str = "bbox"  # bbox: clear and update only the nodes particles touch; full: the whole grid
