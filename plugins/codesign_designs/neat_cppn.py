@@ -89,7 +89,8 @@ class NeatCPPNRepresentation(Representation):
     representations' logit) and K muscle scores (each particle joins its highest).
 
     The paper's connected-body constraint: only the largest connected piece of the occupied
-    particles is kept (particles are neighbours within 1.5 times the median spacing). A genome
+    particles is kept (particles are neighbours within 1.5 times the median spacing), and of that
+    what the environment simulates (`DesignSpace.keep`: parts thick enough for its grid). A genome
     whose body keeps under `min_body_fraction` of the workspace is `valid` False: the optimizer
     ranks it last without simulating it. Setup draws a first random genome, so the
     representation also plays alone (e.g. with the evaluate optimizer); it has no torch
@@ -131,6 +132,8 @@ class NeatCPPNRepresentation(Representation):
         self.genome, self.genome_config = genome, genome_config
         out = evaluate_cppn(genome, genome_config, self.features)
         occupied = self.connected_body(out[:, 0] > 0.0)
+        if self.space.keep is not None:  # what the environment simulates of it (thick enough for its grid)
+            occupied = self.space.keep(occupied)
         self.valid = occupied.mean() >= max(self.config.min_body_fraction, 1e-12)
         muscle = np.eye(self.space.n_actuators)[np.argmax(out[:, 2:], axis=1)]
         self._fields = DesignFields(

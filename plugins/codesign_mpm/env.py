@@ -15,15 +15,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from codesign.artifacts import EPISODE_METRICS
 from codesign.bodies import BODY_FILE_SUFFIXES, BodyError, load_body
 import torch
 
-from codesign.errors import RecipeError
+from codesign.errors import DesignError, RecipeError
 from codesign.interfaces import Controller, DesignFields, DesignSpace, Environment, StepResult
 from codesign.registry import suggest
 from codesign_mpm.batch import BatchSimulator
 from codesign_mpm.config import CoverConfig, EnvironmentPreset, LocomotionConfig, RobotConfig, TaskConfig
 from codesign_mpm.engine import Simulator
+from codesign_mpm.integrity import MIN_THICKNESS_CELLS, IntegrityWatch, resolved_body, thinnest_cells
 from codesign_mpm.materials import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio
 from codesign_mpm.observations import Observer
 from codesign_mpm.sampling import Particles, build_particles
@@ -168,6 +170,7 @@ class EpisodeState:
     n_robot: int  # the design's robot particles come first
     mass: torch.Tensor  # (n_robot,)
     muscle: torch.Tensor  # (n_robot, K)
+    watch: IntegrityWatch  # whether the body holds together, frame by frame
 
 
 class LocomotionEnv(Environment):
@@ -199,11 +202,11 @@ class LocomotionEnv(Environment):
         self.base_particles: Particles = _subset(everything, everything.robot)
         self.cover_particles: Particles = _subset(everything, ~everything.robot)
         k = self.base_particles.n_actuators
-        half = config.dx / round(config.robot.particles_per_cell ** (1 / 3)) / 2  # lattice cells around particles
+        self.spacing = config.dx / round(config.robot.particles_per_cell ** (1 / 3))  # the robot's sampling lattice
         base = self.base_particles
         self.design_space = DesignSpace(points=base.x.copy(), n_actuators=k, default_stiffness=config.robot.youngs_modulus,
-                                        bounds=np.stack([base.x.min(0) - half, base.x.max(0) + half]),
-                                        muscle=base.muscle.copy(), fiber=base.fiber.copy())
+                                        bounds=np.stack([base.x.min(0) - self.spacing / 2, base.x.max(0) + self.spacing / 2]),
+                                        muscle=base.muscle.copy(), fiber=base.fiber.copy(), keep=self.resolved)
         self.action_dim = k
         self.horizon = config.horizon
         self.control_dt = config.frame_dt
@@ -227,13 +230,29 @@ class LocomotionEnv(Environment):
         """The observation as a `gymnasium.spaces.Box`."""
         return self.observer.space()
 
-    def design_particles(self, design: DesignFields) -> Particles:
-        """Base particles with a design applied; particles under the occupancy threshold are dropped."""
+    def resolved(self, occupied: np.ndarray) -> np.ndarray:
+        """What of an occupied set of workspace particles this environment simulates: the parts at
+        least `integrity.MIN_THICKNESS_CELLS` grid cells thick, in one connected body (thinner parts
+        tear under actuation; `codesign_mpm.integrity.resolved_body`)."""
+        return resolved_body(self.base_particles.x, occupied, self.spacing, self.config.dx)
+
+    def design_mask(self, occupancy: np.ndarray) -> np.ndarray:
+        """(N,) the workspace particles a design keeps: occupancy >= OCCUPANCY_THRESHOLD, then `resolved`.
+        A `DesignError` if nothing is left."""
+        occupied = np.asarray(occupancy).reshape(self.base_particles.n) >= OCCUPANCY_THRESHOLD
+        keep = self.resolved(occupied)
+        if not keep.any():
+            raise DesignError(
+                f"the design leaves no part at least {MIN_THICKNESS_CELLS:g} grid cells thick (dx = {self.config.dx:.4g}; "
+                f"{int(occupied.sum())} of {len(occupied)} particles have occupancy >= {OCCUPANCY_THRESHOLD})")
+        return keep
+
+    def design_particles(self, design: DesignFields, keep: np.ndarray | None = None) -> Particles:
+        """Base particles with a design applied: those `design_mask` keeps (or `keep`, its result),
+        weighed by their occupancy."""
         base = self.base_particles
         occupancy = _numpy(design.occupancy).reshape(base.n)
-        keep = occupancy >= OCCUPANCY_THRESHOLD
-        if not keep.any():
-            raise ValueError(f"the design leaves no particle with occupancy >= {OCCUPANCY_THRESHOLD}")
+        keep = self.design_mask(occupancy) if keep is None else keep
         robot = replace(
             _subset(base, keep),
             volume=base.volume[keep] * occupancy[keep],
@@ -259,6 +278,7 @@ class LocomotionEnv(Environment):
         self.sim.set_initial_state(F=self.initial_deformation(particles))
         self.t = 0
         self._episode = self._start_task(particles)
+        self.sim.on_frame = self._episode.watch.see
         return self._observe(self._episode, 0, self.sim.particles_state())[0]
 
     def reset_population(self, designs: list[DesignFields | None], seed: int | None = None) -> list[np.ndarray]:
@@ -276,6 +296,7 @@ class LocomotionEnv(Environment):
         for member in members:
             task = make_task(self.config.task)
             self._population.append(self._start_task(member, task, replace(self.observer, task=task)))
+        self._batch.on_frame = self._see_population
         return [self._observe(episode, 0, state)[0] for episode, state in zip(self._population, self._member_states())]
 
     def step_population(self, actions: np.ndarray) -> list[StepResult]:
@@ -285,6 +306,10 @@ class LocomotionEnv(Environment):
         self.population_t += 1
         return [self._result(episode, self.population_t, state)
                 for episode, state in zip(self._population, self._member_states())]
+
+    def _see_population(self, x: np.ndarray) -> None:
+        for episode, member_x in zip(self._population, self._batch.split(x)):
+            episode.watch.see(member_x)
 
     def _member_states(self) -> list[tuple[np.ndarray, ...]]:
         """(x, v, C, F) of each member of the batch."""
@@ -309,7 +334,20 @@ class LocomotionEnv(Environment):
         rest = particles.x[robot]
         com = (mass.numpy() @ rest) / mass.sum().item()
         task.start(TaskContext(rest_x=rest, start_com=com, control_dt=self.control_dt, horizon=self.horizon))
-        return EpisodeState(task, observer, int(robot.sum()), mass, torch.as_tensor(particles.muscle[robot]))
+        watch = IntegrityWatch(mass.numpy(), self.config.dx, self.config.integrity.tolerance,
+                               thinnest_cells(rest, self.spacing, self.config.dx))
+        return EpisodeState(task, observer, int(robot.sum()), mass, torch.as_tensor(particles.muscle[robot]), watch)
+
+    def tear_outcome(self, watch: IntegrityWatch, t: int) -> tuple[bool, float]:
+        """(whether step t's reward is dropped, the penalty taken off at step t) for a robot that tore
+        (`config.integrity`): terminate drops the rewards from the frame it tore on; penalize takes
+        penalty x horizon x (torn fraction - tolerance) off the last step."""
+        rule = self.config.integrity
+        dropped = rule.on_tear == "terminate" and watch.torn_at is not None and t >= watch.torn_at
+        penalty = 0.0
+        if rule.on_tear == "penalize" and t == self.horizon:
+            penalty = rule.penalty * self.horizon * max(0.0, watch.torn - rule.tolerance)
+        return dropped, penalty
 
     def step(self, action: np.ndarray) -> StepResult:
         if self.sim is None:
@@ -321,7 +359,9 @@ class LocomotionEnv(Environment):
     def _result(self, episode: EpisodeState, t: int, state: tuple[np.ndarray, ...]) -> StepResult:
         observation, frame = self._observe(episode, t, state)
         reward = float(episode.task.reward(frame))
-        return StepResult(observation, reward, t >= self.horizon, {"com": frame.com_x.numpy().copy()})
+        dropped, penalty = self.tear_outcome(episode.watch, t)
+        info = {"com": frame.com_x.numpy().copy(), EPISODE_METRICS: episode.watch.metrics()}
+        return StepResult(observation, (0.0 if dropped else reward) - penalty, t >= self.horizon or dropped, info)
 
     def _observe(self, episode: EpisodeState, t: int, state: tuple[np.ndarray, ...]) -> tuple[np.ndarray, RobotFrame]:
         """(observation before step t + 1, the robot's frame after step t) from the particles'

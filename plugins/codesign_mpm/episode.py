@@ -13,17 +13,18 @@ Two paths, chosen per episode:
 
 Design fields enter as the simulator's per-particle inputs (volume = sampled volume x
 occupancy, Young's modulus, muscle membership, fibre); particles under the occupancy
-threshold are dropped, as in every other episode, so they receive no gradient.
+threshold or in parts too thin for the grid are dropped (`LocomotionEnv.design_mask`), as in every
+other episode, so they receive no gradient.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import numpy as np
 import torch
 
 from codesign.interfaces import Controller, DesignFields
 from codesign_mpm.bridge import simulate, step_frame
-from codesign_mpm.env import OCCUPANCY_THRESHOLD, LocomotionEnv
+from codesign_mpm.env import LocomotionEnv
 from codesign_mpm.sampling import Particles
 from codesign_mpm.tasks import RobotFrame
 
@@ -32,14 +33,16 @@ DTYPE = torch.float64
 
 @dataclass
 class Episode:
-    loss: torch.Tensor  # scalar: minus the summed reward
-    rewards: torch.Tensor  # (T,)
+    loss: torch.Tensor  # scalar: minus the episode's return
+    rewards: torch.Tensor  # (T,) the task's reward per step, those a tear drops set to zero
     com: np.ndarray  # (T + 1, 3) robot centre of mass per frame
     actions: np.ndarray  # (T, K)
+    penalty: float = 0.0  # what a tear costs (`LocomotionEnv.tear_outcome`), taken off the return
+    metrics: dict = field(default_factory=dict)  # the body's integrity (codesign_mpm.integrity)
 
     @property
     def episode_return(self) -> float:
-        return self.rewards.sum().item()
+        return self.rewards.sum().item() - self.penalty
 
 
 def _tensor(value, shape) -> torch.Tensor:
@@ -50,9 +53,10 @@ def design_inputs(env: LocomotionEnv, design: DesignFields) -> tuple[Particles, 
     """The design's particles (robot, then cover) and its differentiable per-particle inputs
     (volume, Young's modulus, muscle, fibre), the cover's as constants."""
     base, cover = env.base_particles, env.cover_particles
-    particles = env.design_particles(design)
     occupancy = _tensor(design.occupancy, (base.n,))
-    keep = torch.as_tensor(occupancy.detach().numpy() >= OCCUPANCY_THRESHOLD)
+    mask = env.design_mask(occupancy.detach().numpy())
+    particles = env.design_particles(design, mask)
+    keep = torch.as_tensor(mask)
     robot = (
         torch.as_tensor(base.volume, dtype=DTYPE)[keep] * occupancy[keep],
         _tensor(design.stiffness, (base.n,))[keep],
@@ -69,7 +73,9 @@ def run_episode(env: LocomotionEnv, design: DesignFields, controller: Controller
     particles, inputs = design_inputs(env, design)
     volume, stiffness, muscle, fiber = inputs
     sim = env.grad_simulator(particles)
-    n = env._start_task(particles).n_robot
+    watch = env._start_task(particles).watch
+    n = len(watch.mass)
+    sim.on_frame = watch.see
     controller.reset()
     dt, T = env.control_dt, env.horizon
     density = torch.as_tensor(particles.density[:n], dtype=DTYPE)
@@ -101,4 +107,8 @@ def run_episode(env: LocomotionEnv, design: DesignFields, controller: Controller
             rewards.append(env.task.reward(frame))
             coms.append(frame.com_x.detach().numpy())
         rewards, actions, com = torch.stack(rewards), torch.stack(actions), np.stack(coms)
-    return Episode(-rewards.sum(), rewards, com, actions.detach().numpy())
+    outcomes = [env.tear_outcome(watch, t) for t in range(1, T + 1)]
+    kept = torch.tensor([0.0 if dropped else 1.0 for dropped, _ in outcomes], dtype=DTYPE)
+    penalty = sum(p for _, p in outcomes)
+    rewards = rewards * kept
+    return Episode(penalty - rewards.sum(), rewards, com, actions.detach().numpy(), penalty, watch.metrics())

@@ -13,6 +13,9 @@ lattice it was sampled on, as the largest cube (in grid cells) that fits around 
 """
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import ndimage
 from scipy.sparse import coo_matrix
@@ -45,15 +48,41 @@ def torn_fraction(x: np.ndarray, mass: np.ndarray, dx: float) -> float:
     if len(x) == 0 or total <= 0:
         return 0.0
     per_piece = np.bincount(pieces(x, dx), weights=mass)
-    return float(1.0 - per_piece.max() / total)
+    return float((per_piece.sum() - per_piece.max()) / per_piece.sum())  # exactly 0 for one piece
+
+
+def lattice_index(points: np.ndarray, spacing: float) -> np.ndarray:
+    """(N, 3) voxel of each lattice point, one empty voxel of padding below."""
+    return np.rint((points - points.min(0)) / spacing).astype(np.int64) + 1
 
 
 def lattice_occupancy(points: np.ndarray, spacing: float) -> np.ndarray:
     """Boolean voxel grid with one voxel per lattice point (padded by one empty voxel)."""
-    index = np.rint((points - points.min(0)) / spacing).astype(np.int64) + 1
+    index = lattice_index(points, spacing)
     grid = np.zeros(index.max(0) + 2, dtype=bool)
     grid[tuple(index.T)] = True
     return grid
+
+
+def resolved_body(points: np.ndarray, occupied: np.ndarray, spacing: float, dx: float,
+                  min_cells: float = MIN_THICKNESS_CELLS) -> np.ndarray:
+    """The part of a design the grid can carry: of the `occupied` points of a sampling lattice of
+    `spacing`, those inside a cube at least `min_cells` grid cells wide that fits in the occupied
+    set (a morphological opening), then only the largest piece their stencils join (`pieces`).
+    (N,) bool; all False where nothing is thick enough."""
+    occupied = np.asarray(occupied, dtype=bool)
+    if not occupied.any():
+        return occupied
+    index = lattice_index(points, spacing)
+    grid = np.zeros(index.max(0) + 2, dtype=bool)
+    grid[tuple(index[occupied].T)] = True
+    k = max(1, math.ceil(min_cells * dx / spacing - 1e-9))
+    opened = ndimage.binary_opening(grid, structure=np.ones((k, k, k), dtype=bool))
+    kept = occupied & opened[tuple(index.T)]
+    if kept.any():
+        label = pieces(points[kept], dx)
+        kept[np.flatnonzero(kept)] = label == np.bincount(label).argmax()
+    return kept
 
 
 def thinnest_cells(points: np.ndarray, spacing: float, dx: float, max_cells: float = 4.0) -> float:
@@ -73,3 +102,27 @@ def thinnest_cells(points: np.ndarray, spacing: float, dx: float, max_cells: flo
             break
         fits = k
     return fits * spacing / dx
+
+
+@dataclass
+class IntegrityWatch:
+    """Follows one robot through an episode: `see` the positions after every frame (robot first)."""
+
+    mass: np.ndarray  # (n_robot,) the robot particles' masses
+    dx: float
+    tolerance: float  # a torn fraction above this counts as torn
+    thinnest: float  # the design's thinnest part at rest, in grid cells (`thinnest_cells`)
+    torn: float = 0.0  # the largest torn fraction seen so far
+    torn_at: int | None = None  # the first frame (1-based) whose torn fraction exceeded the tolerance
+    frames: int = 0
+
+    def see(self, x: np.ndarray) -> None:
+        f = torn_fraction(x[:len(self.mass)], self.mass, self.dx)
+        self.frames += 1
+        self.torn = max(self.torn, f)
+        if self.torn_at is None and f > self.tolerance:
+            self.torn_at = self.frames
+
+    def metrics(self) -> dict[str, float]:
+        """What an episode reports: torn_fraction, thinnest_cells and torn_at_frame (0: never torn)."""
+        return {"torn_fraction": self.torn, "thinnest_cells": self.thinnest, "torn_at_frame": float(self.torn_at or 0)}

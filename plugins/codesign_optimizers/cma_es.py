@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
-from codesign.artifacts import play_population
+from codesign.artifacts import play_population, rank_last
 from codesign.errors import RecipeError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
 from codesign_optimizers.common import BestKeeper, candidate, parameter_groups
@@ -53,7 +53,7 @@ class CMAES(Optimizer):
         pairs = [candidate(self.representation, self.controller, self.params, x) for x in candidates]
         records = play_population(self.environment, [d for d, _ in pairs], [c for _, c in pairs], seed,
                                   self.config.batch)
-        returns = [record.episode_return for record in records]
+        returns = rank_last([record.episode_return for record in records])
         for (design, controller), record in zip(pairs, records):
             self.best.offer(record.episode_return, design, record, self.generation, controller)
         self.es.tell(candidates, [-r for r in returns])  # cma minimises
@@ -63,7 +63,8 @@ class CMAES(Optimizer):
         r = np.asarray(returns)
         return {"episode_return": float(r.max()), "mean_return": float(r.mean()), "std_return": float(r.std()),
                 "best_return": self.best.best_return, "sigma": float(self.es.sigma),
-                "simulated_steps": float(len(r) * self.environment.horizon)}
+                "simulated_steps": float(sum(record.length for record in records)),
+                **records[int(r.argmax())].metrics}
 
     def state_dict(self) -> dict:
         return {"es": self.es, "generation": self.generation, "best_return": self.best.best_return,

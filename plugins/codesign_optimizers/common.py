@@ -48,7 +48,8 @@ class BestKeeper:
         self.best_return = episode_return
         if self.run_dir is not None:
             save_best(Path(self.run_dir), design, self.environment.design_space.points, controller or self.controller,
-                      record, {"iteration": iteration, "episode_return": episode_return})
+                      record, {"iteration": iteration, "episode_return": episode_return,
+                               **(record.metrics if record is not None else {})})
         return True
 
 

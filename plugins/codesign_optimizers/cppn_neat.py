@@ -4,6 +4,7 @@ genomes of the neat_cppn representation while CMA-ES evolves the controller, one
 from __future__ import annotations
 
 import configparser
+import math
 import pickle
 import random
 from pathlib import Path
@@ -13,7 +14,7 @@ import numpy as np
 import torch
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
-from codesign.artifacts import BEST, play_population
+from codesign.artifacts import BEST, play_population, rank_last
 from codesign.errors import RecipeError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
 from codesign_optimizers.common import BestKeeper, candidate, parameter_groups
@@ -95,19 +96,20 @@ class CPPNNEAT(Optimizer):
                                      None if candidates is None else candidates[i])
         records = play_population(self.environment, [d for d, _ in pairs.values()], [c for _, c in pairs.values()],
                                   seed, self.config.batch)
-        returns: list[float | None] = [None] * len(genomes)
+        returns = [math.nan] * len(genomes)  # invalid or unplayable bodies rank below every played one
         for (i, (design, controller)), record in zip(pairs.items(), records):
             returns[i] = record.episode_return
             if self.best.offer(record.episode_return, design, record, self.population.generation, controller):
                 (self.run_dir / BEST / GENOME_FILE).write_bytes(pickle.dumps(genomes[i][1]))
-        valid = [r for r in returns if r is not None]
-        floor = min(valid) - 1.0 if valid else 0.0  # invalid bodies rank below every valid one
-        fitness = [r if r is not None else floor for r in returns]
+        played = [record for record in records if record.played]
+        best_metrics = max(played, key=lambda record: record.episode_return).metrics if played else {}
+        valid = [r for r in returns if not math.isnan(r)]
+        fitness = rank_last(returns)
         for (_, genome), f in zip(genomes, fitness):
             genome.fitness = f
         if self.es is not None:
             self.es.tell(candidates, [-f for f in fitness])  # cma minimises
-        self._generation_stats = {"returns": np.asarray(valid), "pairs": len(genomes),
+        self._generation_stats = {"returns": np.asarray(valid), "pairs": len(genomes), "metrics": best_metrics,
                                   "nodes": np.mean([len(g.nodes) for _, g in genomes]),
                                   "connections": np.mean([sum(c.enabled for c in g.connections.values())
                                                           for _, g in genomes])}
@@ -123,7 +125,7 @@ class CPPNNEAT(Optimizer):
                    "best_return": self.best.best_return, "valid_fraction": len(s["returns"]) / s["pairs"],
                    "species": float(len(self.population.species.species)), "mean_nodes": float(s["nodes"]),
                    "mean_connections": float(s["connections"]),
-                   "simulated_steps": float(len(s["returns"]) * self.environment.horizon)}
+                   "simulated_steps": float(len(s["returns"]) * self.environment.horizon), **s["metrics"]}
         if self.es is not None:
             metrics["sigma"] = float(self.es.sigma)
         return metrics

@@ -64,7 +64,7 @@ class DiffPhysics(Optimizer):
         episode.loss.backward()
         metrics = {"loss": episode.loss.item(), "episode_return": episode.episode_return,
                    "restart": float(self.iteration // self.config.iterations),
-                   "simulated_steps": float(self.environment.horizon)}
+                   "simulated_steps": float(self.environment.horizon), **episode.metrics}
         for name, params in self.groups.items():
             grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params]
             norm = float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads])))
@@ -75,7 +75,8 @@ class DiffPhysics(Optimizer):
             metrics[f"grad_norm_{name}"] = norm
             if self.config.clip_grad_norm is not None:
                 torch.nn.utils.clip_grad_norm_(params, self.config.clip_grad_norm)
-        record = EpisodeRecord(episode.episode_return, self.environment.horizon, episode.com[1:], episode.actions)
+        record = EpisodeRecord(episode.episode_return, self.environment.horizon, episode.com[1:], episode.actions,
+                               episode.metrics)
         self.best.offer(episode.episode_return, design, record, self.iteration)  # before the update changes them
         metrics["best_return"] = self.best.best_return
         self.adam.step()

