@@ -1252,9 +1252,10 @@ class _Storage:
             b = F @ F.transpose()
             mean = b.trace() / 3.0
             dev = b - mean * ti.Matrix.identity(float, 3)
-            largest = mean + ti.sqrt(2.0 / 3.0 * (dev * dev).sum())
+            gershgorin = 0.0
             for i in ti.static(range(3)):
-                largest = ti.min(largest, ti.abs(b[i, 0]) + ti.abs(b[i, 1]) + ti.abs(b[i, 2]))
+                gershgorin = ti.max(gershgorin, ti.abs(b[i, 0]) + ti.abs(b[i, 1]) + ti.abs(b[i, 2]))
+            largest = ti.min(mean + ti.sqrt(2.0 / 3.0 * (dev * dev).sum()), gershgorin)
             if model == ti.static(ID["stvk"]):
                 largest = largest * largest
             mu, la = self._lame(p)

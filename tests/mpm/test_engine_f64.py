@@ -125,6 +125,45 @@ def test_backward_repeats_exactly_after_reusing_the_last_segment(sim, actions, w
         np.testing.assert_array_equal(getattr(second, name), getattr(first, name), err_msg=name)
 
 
+def test_after_a_backward_pass_the_simulator_continues_from_the_rollouts_end(sim, actions, weights):
+    """backward() recomputes earlier segments in the slots; step(), particles_state() and stress() must
+    still see the rollout's final state."""
+    wx = np.zeros((sim.n, 3))
+    out = sim.rollout(actions, checkpoint_every=5)  # several segments
+    sim.step(actions[-1], frames=2)
+    expected = sim.particles_state()
+    gradients(sim, actions, weights, wx, checkpoint_every=5)
+    for a, b in zip(sim.particles_state(), (out.x, out.v, out.final.C, out.final.F)):
+        np.testing.assert_array_equal(a, b)
+    sim.step(actions[-1], frames=2)
+    for a, b in zip(sim.particles_state(), expected):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_frames_take_the_substeps_their_state_needs_and_backward_replays_them(sim, actions, weights):
+    """A body released stretched by 90% along x stiffens (the neo-Hookean tangent grows with F F^T), so
+    its first frames take more substeps than at rest; as it rings, the count changes from frame to
+    frame. Gradients through those frames match central differences (eps too small to change them)."""
+    F0 = np.tile(np.diag([1.9, 1.0, 1.0]), (sim.n, 1, 1))
+    wx = np.random.default_rng(2).normal(size=(sim.n, 3)) / sim.n
+    direction = np.random.default_rng(4).normal(size=actions.shape)
+    try:
+        sim.set_initial_state(F=F0)
+        g = gradients(sim, actions, weights, wx, checkpoint_every=5)
+        plan = list(sim.frame_substeps)
+        assert min(plan) >= sim.timestep.substeps and plan[0] > sim.timestep.substeps and len(set(plan)) > 1, plan
+
+        def perturbed(eps):
+            value = loss(sim, actions + eps * direction, weights, wx)
+            assert sim.frame_substeps == plan
+            return value
+
+        numeric = central_difference(perturbed, 1e-6)
+        assert float((g.actions * direction).sum()) == pytest.approx(numeric, rel=1e-5)
+    finally:
+        sim.set_initial_state()
+
+
 def test_gradients_are_the_same_with_the_grids_kept_or_recomputed(sim, actions, weights, monkeypatch):
     """The reverse pass takes each substep's grid from the segment's recompute when it fits the store
     (GRID_STORE_BYTES), else recomputes it: both give the same gradients."""

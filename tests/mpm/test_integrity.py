@@ -1,0 +1,139 @@
+"""Body integrity (codesign_mpm.integrity): pieces that share no grid node, a design's thinnest part,
+the resolution filter every design goes through, and what a torn episode gets."""
+import numpy as np
+import pytest
+
+from codesign_mpm.integrity import IntegrityWatch, pieces, resolved_body, thinnest_cells, torn_fraction
+from codesign_mpm.sampling import lattice
+
+DX = 1 / 32
+H = DX / 2  # the sampling lattice of 8 particles per cell
+
+
+def box(lo, hi, spacing=H):
+    return lattice(np.asarray(lo, float), np.asarray(hi, float), spacing)
+
+
+def test_pieces_join_exactly_when_stencils_share_a_node():
+    """Base cells floor(x / dx - 1/2) at most 2 apart share a node of their 3x3x3 stencils."""
+    a = np.array([[10.5, 10.5, 10.5]]) * DX  # base cell 10
+    for gap, joined in ((2, True), (3, False)):
+        b = a + [gap * DX, 0, 0]
+        assert (len(set(pieces(np.vstack([a, b]), DX))) == 1) == joined, gap
+
+
+def test_torn_fraction_is_the_mass_outside_the_largest_piece():
+    body = box([0.2, 0.2, 0.2], [0.4, 0.28, 0.28])
+    piece = box([0.6, 0.2, 0.2], [0.64, 0.24, 0.24])  # 5 cells away: no shared node
+    x = np.vstack([body, piece])
+    mass = np.ones(len(x))
+    assert torn_fraction(body, np.ones(len(body)), DX) == 0.0
+    assert torn_fraction(x, mass, DX) == pytest.approx(len(piece) / len(x))
+    mass[:len(body)] = 0.01  # by mass, not by count: the small piece is now the body
+    assert torn_fraction(x, mass, DX) == pytest.approx(0.01 * len(body) / (0.01 * len(body) + len(piece)))
+
+
+@pytest.mark.parametrize("cells", [1, 2, 3])
+def test_thinnest_cells_of_a_plate_is_its_thickness(cells):
+    plate = box([0.2, 0.2, 0.2], [0.5, 0.2 + cells * DX, 0.5])
+    assert thinnest_cells(plate, H, DX) == pytest.approx(cells)
+
+
+def test_the_resolution_filter_drops_thin_fins_and_loose_blobs_and_keeps_thick_bodies():
+    body = box([0.2, 0.2, 0.2], [0.4, 0.28, 0.28])  # 6.4 x 2.56 x 2.56 cells
+    fin = box([0.4, 0.2, 0.2], [0.5, 0.2 + DX, 0.28])  # one cell thick, attached
+    blob = box([0.6, 0.2, 0.2], [0.7, 0.28, 0.28])  # thick but apart, and smaller
+    points = np.vstack([body, fin, blob])
+    kept = resolved_body(points, np.ones(len(points), bool), H, DX)
+    n_body = len(body)
+    assert kept[:n_body].all() and not kept[n_body:].any()
+    assert thinnest_cells(points[kept], H, DX) >= 2
+    assert not resolved_body(fin, np.ones(len(fin), bool), H, DX).any()  # nothing thick enough: empty
+
+
+def test_a_watch_records_the_largest_tear_and_when_it_first_exceeded_the_tolerance():
+    body = box([0.2, 0.2, 0.2], [0.4, 0.28, 0.28])
+    watch = IntegrityWatch(np.ones(len(body)), DX, tolerance=0.01, thinnest=2.5)
+    torn = body.copy()
+    torn[:20] += [0.3, 0, 0]
+    for x in (body, torn, body):  # a piece flies off in frame 2 and (say) comes back in frame 3
+        watch.see(x)
+    assert watch.torn == pytest.approx(20 / len(body)) and watch.torn_at == 2
+    assert watch.metrics() == {"torn_fraction": watch.torn, "thinnest_cells": 2.5, "torn_at_frame": 2.0}
+
+
+def ground(**changes):
+    from codesign_mpm.config import PRESET_CONFIGS, PRESETS, TerrainConfig
+    from codesign_mpm.env import LocomotionEnv
+
+    config = PRESET_CONFIGS["ground"](dx=1 / 48, horizon=150, terrain=TerrainConfig(height=0.1, friction=0.5), **changes)
+    return LocomotionEnv(config, PRESETS["ground"])
+
+
+def test_actuation_at_the_bound_keeps_the_quick_start_body_whole():
+    """The quick start's box at the default quality, driven bang-bang at the action bound (neighbouring
+    muscles in antiphase) for 150 frames: no numerical fracture. With the old default muscle strength
+    (stiffness ratio 1, 0.72 x the shear modulus at the bound) 8% of the mass tore off by frame 124."""
+    from codesign_mpm.stability import bang_bang
+
+    env = ground()
+    try:
+        env.reset()
+        act = bang_bang(env.action_dim)
+        for t in range(env.horizon):
+            result = env.step(act(t))
+        metrics = result.info["episode_metrics"]
+        assert result.done and metrics["torn_fraction"] == 0.0 and metrics["thinnest_cells"] >= 2
+        assert np.isfinite(env.sim.particles_state()[0]).all()
+    finally:
+        env.close()
+
+
+def test_muscles_stronger_than_the_material_can_carry_are_refused():
+    from codesign.errors import RecipeError
+    from codesign_mpm.config import RobotConfig
+
+    with pytest.raises(RecipeError, match=r"environment.robot.muscle_stiffness_ratio: 1.0 is too strong .* "
+                                          r"must be <= 0.4167 at poisson_ratio 0.2"):
+        ground(robot=RobotConfig(muscle_stiffness_ratio=1.0))
+
+
+@pytest.mark.parametrize("rule, dropped, penalty", [("penalize", [False] * 4, 100 * 4 * 0.04),
+                                                    ("terminate", [False, True, True, True], 0.0),
+                                                    ("off", [False] * 4, 0.0)])
+def test_a_torn_episode_gets_what_the_recipe_says(rule, dropped, penalty):
+    """penalize: penalty x horizon x (torn - tolerance) off the last step; terminate: rewards from the
+    frame it tore on are dropped; off: nothing. A whole body gets nothing either way."""
+    from codesign_mpm.config import IntegrityConfig
+
+    env = ground(integrity=IntegrityConfig(on_tear=rule))
+    env.horizon = 4
+    try:
+        torn = IntegrityWatch(np.ones(3), DX, 0.01, 2.0, torn=0.05, torn_at=2)
+        outcomes = [env.tear_outcome(torn, t) for t in range(1, 5)]
+        assert [d for d, _ in outcomes] == dropped
+        assert sum(p for _, p in outcomes) == pytest.approx(penalty) and outcomes[-1][1] == pytest.approx(penalty)
+        whole = IntegrityWatch(np.ones(3), DX, 0.01, 2.0, torn=0.005)
+        assert all(o == (False, 0.0) for o in (env.tear_outcome(whole, t) for t in range(1, 5)))
+    finally:
+        env.close()
+
+
+def test_a_design_with_nothing_thick_enough_is_not_played_and_ranks_last():
+    from codesign.artifacts import play, rank_last
+    from codesign.errors import DesignError
+    from codesign.interfaces import DesignFields
+
+    env = ground()
+    try:
+        base = env.base_particles
+        thin = np.zeros(base.n)
+        thin[base.x[:, 1] < base.x[:, 1].min() + DX / 2] = 1.0  # only the bottom layer: under one cell thick
+        design = DesignFields(thin, base.youngs_modulus, base.muscle, base.fiber)
+        with pytest.raises(DesignError, match=r"no part at least 2 grid cells thick \(dx = 0.02083"):
+            env.design_particles(design)
+        record = play(env, design, controller=None)
+        assert not record.played and record.metrics == {"unplayable": 1.0}
+        assert rank_last([3.0, record.episode_return, -1.0]) == [3.0, -2.0, -1.0]
+    finally:
+        env.close()
