@@ -199,6 +199,9 @@ class LocomotionConfig:
         "gt": 0, "le": 0.1, "help": "grid spacing; null = the quality preset's"})
     cfl: Optional[float] = field(default=None, metadata={
         "gt": 0, "le": 1, "help": "dt <= cfl dx / wave speed; null = the quality preset's"})
+    adaptive_dt: bool = field(default=True, metadata={
+        "help": "each frame takes as many substeps as its state needs (speeds, stretch-stiffened materials), never "
+                "fewer than at rest; false: the step at rest throughout"})
     checkpoint_every: Optional[int] = field(default=None, metadata={
         "ge": 1, "help": "substeps between stored states of a differentiable episode; null = the quality "
                          "preset's (memory-optimal sqrt(T/2) when it has none)"})

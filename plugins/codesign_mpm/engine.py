@@ -84,6 +84,12 @@ trajectories moved from the full sweeps' by 1/5 to 1/15 of float32's own error (
 float64); in the desert a bound of 3e-5 moved them by up to 0.7 of it, 1e-4 by 3 to 10 times it."""
 HENCKY_PLASTIC = (ID["sand"], ID["snow"], ID["clay"], ID["mud"])  # models with a return mapping in log strain
 JACOBI_EPS = 1e-6  # eigenvalue gaps below this count as coincident (the scale of b's round-off in float32)
+ADAPTIVE_CFL_FACTOR = 2.0
+"""A frame takes more substeps than at rest once its state's CFL number (particle speed plus the
+stretch-stiffened wave speed, `_wave_speed`) would exceed this many times scene.cfl: a guard against
+instability, not a finer accuracy target (at 1x, the quick start's gait took 32% more substeps; at 2x,
+none, while the stability cases that blew up at the rest step run finite)."""
+MAX_ADAPTIVE_CFL = 0.8  # nor above this CFL number, whatever scene.cfl (measured stable in docs/stability.md)
 MAX_FREE_STORAGES = 4  # compiled storages kept for reuse after their simulators close; older ones are freed
 GRID_STORE_BYTES = 256 * 1024**2  # at most this much keeps a segment's grids for the reverse pass
 CHECKPOINT_MEMORY_BYTES = 128 * 1024**2  # a rollout's checkpoints beyond this go to a temporary file
@@ -1630,12 +1636,14 @@ class Simulator:
             self.dt = dt
 
     def _substeps_for(self, wave: float, at_rest: TimeStep) -> int:
-        """Substeps a frame needs for a state whose fastest wave plus particle speed is `wave`
-        (never fewer than `at_rest`'s; a forced dt or adaptive_dt off keeps those)."""
+        """Substeps a frame needs for a state whose fastest wave plus particle speed is `wave`: its CFL
+        number may reach ADAPTIVE_CFL_FACTOR x cfl (within the stability limit) before the frame takes
+        more than `at_rest`'s (never fewer; a forced dt or adaptive_dt off keeps those)."""
         scene = self.scene
         if not scene.adaptive_dt or scene.dt is not None or not wave > 0:
             return at_rest.substeps
-        return max(at_rest.substeps, math.ceil(scene.frame_dt * wave / (scene.cfl * scene.dx) - 1e-9))
+        limit = min(ADAPTIVE_CFL_FACTOR * scene.cfl, MAX_ADAPTIVE_CFL)
+        return max(at_rest.substeps, math.ceil(scene.frame_dt * wave / (limit * scene.dx) - 1e-9))
 
     def _plan_frame(self) -> int:
         """Substeps for the next frame from the state `_check` last looked at; sets their dt."""
