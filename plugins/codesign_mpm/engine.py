@@ -327,6 +327,7 @@ class _Storage:
         self.wave0 = scalar((n,))  # wave speed at rest (materials.model_wave_speed)
         self.wave_added = scalar((n,))  # the axial modulus the muscle adds at rest
         self.max_wave = scalar(())  # the largest wave speed plus particle speed of the current state
+        self.work = scalar(())  # the muscles' work since the reset (`Simulator.audit_work`)
         if self.has_params:  # every non-elastic scene gets the same fields, so they share compiled kernels
             self.params = vec(N_PARAMS, (n,))
         if self.separate_stress:
@@ -1271,6 +1272,15 @@ class _Storage:
         return speed
 
     @ti.kernel
+    def _muscle_work(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32):
+        """Add the work the muscles did in substep s -> so: the force their stress put on the grid
+        nodes, f_i = -sum_p V_p tau_p (4 / dx^2) (x_i - x_p) w_ip, times the nodes' new velocities,
+        which is -dt sum_p V_p tau_p : C'_p with C' the velocity gradient g2p gathered (forward only)."""
+        for p in range(n):
+            tau = self._muscle_stress(p, self._trial(p, s), t)
+            self.work[None] += -self._dt(p) * self.vol[p] * (tau * self.C[so, p]).sum()
+
+    @ti.kernel
     def _check(self, s: ti.i32, n: ti.i32):
         """Count particles that are non-finite or outside the grid (remember the first one), and
         find the fastest particle and the fastest wave plus particle speed of this state."""
@@ -1396,6 +1406,8 @@ class Simulator:
         self._rollout_changes = -1
         self.on_frame: Callable[[np.ndarray], None] | None = None
         """Called with the positions (N, 3) after every frame of `step` and `rollout` (forward only)."""
+        self.audit_work = False
+        """True: `step` adds up the muscles' work (`muscle_work`), for energy audits (one more kernel per substep)."""
         self._set_constants()
         self.reset(particles)
 
@@ -1471,6 +1483,7 @@ class Simulator:
             k._load_jp(0, self.n, (np.ones(self.n) if self._initial_jp is None else self._initial_jp).astype(r))
         self.frame = 0
         self.frame_substeps: list[int] = []  # substeps each frame since the reset took
+        k.work[None] = 0.0
         self._slot = 0
 
     def _use(self, particles: Particles) -> None:
@@ -1696,6 +1709,8 @@ class Simulator:
             substeps = self._plan_frame()
             for j in range(substeps):
                 self._substep(self._slot, 1 - self._slot, 0, j)
+                if self.audit_work and self.k.has_muscles:
+                    self.k._muscle_work(self._slot, 1 - self._slot, 0, self.n)
                 self._slot = 1 - self._slot
             self.frame += 1
             self.frame_substeps.append(substeps)
@@ -1710,6 +1725,11 @@ class Simulator:
                np.empty((self.n, 3, 3), r))
         self.k._save_state(self._slot if slot is None else slot, self.n, *out)
         return out
+
+    @property
+    def muscle_work(self) -> float:
+        """The work the muscles did on the body since the reset, while `audit_work` was on (`step` only)."""
+        return float(self.k.work[None])
 
     def positions(self, slot: int | None = None) -> np.ndarray:
         """(N, 3) positions of the current (or given) slot."""

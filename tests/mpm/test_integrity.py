@@ -137,3 +137,57 @@ def test_a_design_with_nothing_thick_enough_is_not_played_and_ranks_last():
         assert rank_last([3.0, record.episode_return, -1.0]) == [3.0, -2.0, -1.0]
     finally:
         env.close()
+
+
+def _audit(scene, frames, actions=None, **initial):
+    """max over the frames (up to a SimulationError) of (mechanical energy gained - muscle work), and
+    the largest |muscle work|."""
+    from codesign_mpm import build_particles
+    from codesign_mpm.engine import SimulationError, Simulator
+    from codesign_mpm.stability import energy
+
+    sim = Simulator(scene, build_particles(scene))
+    sim.audit_work = True
+    try:
+        if initial:
+            sim.set_initial_state(**initial)
+        x, v, _, F = sim.particles_state()
+        e0, _ = energy(sim, x, v, F)
+        excess, work = -np.inf, 0.0
+        for f in range(frames):
+            try:
+                sim.step(None if actions is None else actions(f))
+            except SimulationError:
+                break
+            x, v, _, F = sim.particles_state()
+            excess = max(excess, energy(sim, x, v, F)[0] - e0 - sim.muscle_work)
+            work = max(work, abs(sim.muscle_work))
+        return excess, work
+    finally:
+        sim.close()
+
+
+@pytest.mark.parametrize("where", ["ground", "free"])
+def test_the_body_never_gains_more_energy_than_its_muscles_put_in(where):
+    """Energy audit: kinetic + gravitational + elastic energy gained never exceeds the muscles' work
+    (friction, contact and APIC transfers only take energy out), driven bang-bang at the action bound
+    for 120 frames; and the same audit flags an integrator that creates energy (a step 3x the CFL
+    bound, no muscles), so it can fail."""
+    from codesign_mpm import BodySpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec
+    from codesign_mpm.stability import bang_bang
+
+    on_ground = where == "ground"
+    scene = Scene(size=[1.0, 0.5, 0.5], dx=1 / 32, dtype="float64",
+                  terrain=TerrainSpec(kind="flat", height=0.1, friction=0.5) if on_ground else TerrainSpec(kind="none"),
+                  gravity=[0.0, -3.8, 0.0] if on_ground else [0.0, 0.0, 0.0],
+                  bodies=[BodySpec(name="robot", robot=True, shape=ShapeSpec(size=[0.16, 0.08, 0.08]),
+                                   center=[0.5, 0.0 if on_ground else 0.25, 0.25], rest_on_terrain=on_ground,
+                                   muscles=MuscleSpec(groups=[2, 2, 1]))])
+    excess, work = _audit(scene, 120, bang_bang(4))
+    assert work > 1.0 and excess <= 1e-3 * work, (excess, work)
+
+    scene.bodies[0].muscles = None  # no work put in: any energy gained is the integrator's
+    scene.frame_dt = scene.dt = 1.5 * scene.dx / 4.0  # CFL number 1.5 (wave speed 3.3 plus the motion)
+    scene.allow_unstable_dt = True
+    created, _ = _audit(scene, 20, v=np.random.default_rng(0).normal(0, 0.05, (250, 3)))
+    assert created > 1e-3 * work, created
