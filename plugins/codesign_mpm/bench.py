@@ -14,7 +14,7 @@ import resource
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -63,7 +63,7 @@ def measure_forward(case: Case, repeats: int = 5, frames: int = 3) -> dict:
     for r in range(repeats):
         t0 = time.perf_counter()
         sim.step(np.full(sim.n_actuators, 0.1 * (-1) ** r), frames=frames)
-        rates.append(sim.n * frames * sim.timestep.substeps / (time.perf_counter() - t0))
+        rates.append(sim.n * sum(sim.frame_substeps[-frames:]) / (time.perf_counter() - t0))
     return dict(measure="forward", particles=sim.n, substeps_per_frame=sim.timestep.substeps,
                 dt=sim.timestep.dt, first_frame_s=round(first, 3),
                 particle_substeps_per_s=float(np.median(rates)), repeats=[round(r) for r in rates])
@@ -93,7 +93,7 @@ def measure_backward(case: Case, frames: int = 200, repeats: int = 1) -> dict:
         fwd.append(t1 - t0)
         total.append(t2 - t0)
     assert np.isfinite(out.com_x).all()
-    substeps = frames * sim.timestep.substeps
+    substeps = sum(sim.frame_substeps)
     return dict(measure="backward", particles=sim.n, frames=frames, substeps=substeps,
                 checkpoint_every=sim.segment, first_call_s=round(first, 3),
                 forward_s=float(np.median(fwd)), forward_backward_s=float(np.median(total)),
@@ -166,6 +166,32 @@ def measure_scatter(case: Case, frames: int = 3, repeats: int = 5) -> dict:
                 speedup=float(np.median(np.asarray(times["atomic"]) / np.asarray(times["private"]))))
 
 
+def measure_adaptive(case: Case, frames: int = 3, repeats: int = 5) -> dict:
+    """Wall time per frame with the state-following time step (`scene.adaptive_dt`, the default)
+    against the step at rest throughout, in one process, timed alternately; the robot driven at
+    the action bound, so the guard has something to follow."""
+    from codesign_mpm import build_particles
+    from codesign_mpm.engine import Simulator
+
+    scene = robot_scene(case)
+    particles = build_particles(scene)
+    sims = {"adaptive": Simulator(scene, particles), "fixed": Simulator(replace(scene, adaptive_dt=False), particles)}
+    times: dict[str, list[float]] = {name: [] for name in sims}
+    for sim in sims.values():
+        sim.step(np.zeros(sim.n_actuators))  # compile (or load from the offline cache)
+    for r in range(repeats):
+        for name, sim in sims.items():
+            t0 = time.perf_counter()
+            sim.step(np.full(sim.n_actuators, 0.3 * (-1) ** r), frames=frames)
+            times[name].append(time.perf_counter() - t0)
+    adaptive = sims["adaptive"].frame_substeps[1:]
+    return dict(measure="adaptive", particles=particles.n, substeps_at_rest=sims["fixed"].timestep.substeps,
+                adaptive_substeps_mean=float(np.mean(adaptive)), adaptive_substeps_max=int(max(adaptive)),
+                adaptive_s_per_frame=float(np.median(times["adaptive"])) / frames,
+                fixed_s_per_frame=float(np.median(times["fixed"])) / frames,
+                cost=float(np.median(np.asarray(times["adaptive"]) / np.asarray(times["fixed"]))))
+
+
 COVERS = ("none", "sand", "snow", "clay", "mud", "water")
 """What `measure_compile` puts under the robot: each material's own backward kernels."""
 
@@ -233,7 +259,7 @@ def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True
     from codesign.progress import progress_bar
 
     machine = _machine()
-    with progress_bar(total=6 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
+    with progress_bar(total=7 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
         for scale in scales:
             for case in (Case(scale, "float32"), Case(scale, "float64"), Case(scale, "float32", "full")):
                 emit(dict(scale=scale, dtype=case.dtype, grid_region=case.grid_region,
@@ -246,6 +272,8 @@ def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True
             emit(dict(scale=scale, dtype="float32", **_run_isolated("batch", case), **machine))
             bar.update(1)
             emit(dict(scale=scale, dtype="float32", **_run_isolated("scatter", case), **machine))
+            bar.update(1)
+            emit(dict(scale=scale, dtype="float32", **_run_isolated("adaptive", case), **machine))
             bar.update(1)
 
 
@@ -336,5 +364,5 @@ if __name__ == "__main__":  # one isolated measurement, used by _run_isolated / 
     else:
         kind, scale, dtype, region, kwargs = sys.argv[1:6]
         measure = {"forward": measure_forward, "backward": measure_backward, "batch": measure_batch,
-                   "scatter": measure_scatter}[kind]
+                   "scatter": measure_scatter, "adaptive": measure_adaptive}[kind]
         print(json.dumps(measure(Case(scale, dtype, region), **json.loads(kwargs))))
