@@ -49,6 +49,7 @@ class Evaluate(Optimizer):
             "episode_return": record.episode_return,
             "mean_reward": record.episode_return / max(record.length, 1),
             "episode_length": float(record.length),
+            **record.metrics,  # what the environment reports of the episode (e.g. the body's integrity)
         }
 
     def state_dict(self) -> dict:
