@@ -22,6 +22,21 @@ def test_pieces_join_exactly_when_stencils_share_a_node():
         assert (len(set(pieces(np.vstack([a, b]), DX))) == 1) == joined, gap
 
 
+def test_pieces_are_the_components_of_the_shared_node_graph():
+    """The voxel labelling against the definition, pair by pair, on random clouds of all densities."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(0)
+    for n in (5, 50, 200, 400):
+        x = rng.uniform(0.0, 0.4, (n, 3))
+        base = np.floor(x / DX - 0.5)
+        near = (np.abs(base[:, None, :] - base[None, :, :]) <= 2).all(-1)
+        _, expected = connected_components(coo_matrix(near), directed=False)
+        labels = pieces(x, DX)
+        assert len(set(zip(expected, labels))) == len(set(expected)) == len(set(labels)), n
+
+
 def test_torn_fraction_is_the_mass_outside_the_largest_piece():
     body = box([0.2, 0.2, 0.2], [0.4, 0.28, 0.28])
     piece = box([0.6, 0.2, 0.2], [0.64, 0.24, 0.24])  # 5 cells away: no shared node
