@@ -314,14 +314,14 @@ def measure_environment(name: str, scale: str, frames: int = 3, repeats: int = 3
     """Forward particle-substeps/s, substeps per control step and ms per substep of one preset."""
     from codesign_mpm.engine import Simulator
 
-    from codesign_mpm.settle import settled_deformation
+    from codesign_mpm.settle import settled_state
 
     scene, particles = environment_particles(name, scale)
     t0 = time.perf_counter()
-    settled = settled_deformation(scene, particles)  # the environments' default start: its whole cost
+    F, jp = settled_state(scene, particles)  # the environments' default start: its whole cost
     settle_s = time.perf_counter() - t0
     sim = Simulator(scene, particles)
-    sim.set_initial_state(F=settled)
+    sim.set_initial_state(F=F, Jp=jp)
     rng = np.random.default_rng(0)
     t0 = time.perf_counter()
     sim.step(rng.uniform(-0.3, 0.3, sim.n_actuators))  # compiles (or loads from the offline cache)

@@ -1500,10 +1500,13 @@ class Simulator:
         """Replace parts of the initial state (numpy, live particles only) and reset to it.
 
         Positions and velocities default to the particles'; C to zero, F to identity and the
-        plastic volume ratio `Jp` (snow only) to one. A faster start gets a smaller time step.
+        plastic volume ratio `Jp` (snow only; all ones is accepted anywhere) to one. A faster start
+        gets a smaller time step.
         """
         if Jp is not None and not self.k.has_jp:
-            raise ValueError("Jp is state only in scenes with snow")
+            if not np.all(np.asarray(Jp) == 1.0):
+                raise ValueError("Jp is state only in scenes with snow")
+            Jp = None
         given = {name: np.asarray(value, dtype=np.float64).reshape(self.n, 3)
                  for name, value in (("x", x), ("v", v)) if value is not None}
         if given:  # only positions and velocities enter the particles (and the time step)

@@ -30,7 +30,7 @@ from codesign_mpm.materials import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio,
 from codesign_mpm.observations import Observer
 from codesign_mpm.sampling import Particles, build_particles
 from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
-from codesign_mpm.settle import settled_deformation
+from codesign_mpm.settle import settled_state
 from codesign_mpm.tasks import TASKS, RobotFrame, Task, TaskContext
 from codesign_mpm.terrain import height_map
 
@@ -216,8 +216,11 @@ class LocomotionEnv(Environment):
         self.observation_dim = self.observer.dim
         self.particles: Particles = _concat(self.base_particles, self.cover_particles)
         cover = preset.cover if config.cover is None else config.cover
-        self._cover_F = (settled_deformation(self.scene, everything)[~everything.robot] if cover.settled
-                         else np.tile(np.eye(3), (self.cover_particles.n, 1, 1)))
+        if cover.settled:
+            F, jp = settled_state(self.scene, everything)
+            self._cover_F, self._cover_jp = F[~everything.robot], jp[~everything.robot]
+        else:
+            self._cover_F, self._cover_jp = np.tile(np.eye(3), (self.cover_particles.n, 1, 1)), np.ones(self.cover_particles.n)
         self.sim: Simulator | None = None
         self._grad_sim: Simulator | None = None
         self._batch: BatchSimulator | None = None
@@ -276,7 +279,7 @@ class LocomotionEnv(Environment):
             self.sim = Simulator(self.scene, particles, capacity=self.capacity)
         else:
             self.sim.reset(particles)
-        self.sim.set_initial_state(F=self.initial_deformation(particles))
+        self.sim.set_initial_state(**self.initial_state(particles))
         self.t = 0
         self._episode = self._start_task(particles)
         self.sim.on_frame = self._episode.watch.see
@@ -291,7 +294,8 @@ class LocomotionEnv(Environment):
             self._batch = BatchSimulator(self.scene, members, capacity=self.capacity)
         else:
             self._batch.reset_members(members)
-        self._batch.set_initial_state(F=np.concatenate([self.initial_deformation(m) for m in members]))
+        starts = [self.initial_state(m) for m in members]
+        self._batch.set_initial_state(**{key: np.concatenate([s[key] for s in starts]) for key in starts[0]})
         self.population_t = 0
         self._population = []
         for member in members:
@@ -321,10 +325,12 @@ class LocomotionEnv(Environment):
         """Particles of the full workspace plus the cover: every design's simulators share one layout."""
         return self.base_particles.n + self.cover_particles.n
 
-    def initial_deformation(self, particles: Particles) -> np.ndarray:
-        """(N, 3, 3) initial F of a design's particles: identity for the robot, the cover's settled state."""
-        robot = np.tile(np.eye(3), (int(particles.robot.sum()), 1, 1))
-        return np.concatenate([robot, self._cover_F])
+    def initial_state(self, particles: Particles) -> dict[str, np.ndarray]:
+        """The deformation F (N, 3, 3) and plastic volume ratio Jp (N,) a design's particles start from
+        (`Simulator.set_initial_state` keywords): the robot at rest, the cover settled."""
+        n = int(particles.robot.sum())
+        return {"F": np.concatenate([np.tile(np.eye(3), (n, 1, 1)), self._cover_F]),
+                "Jp": np.concatenate([np.ones(n), self._cover_jp])}
 
     def _start_task(self, particles: Particles, task: Task | None = None, observer: Observer | None = None
                     ) -> EpisodeState:
@@ -392,7 +398,7 @@ class LocomotionEnv(Environment):
                                        checkpoint_every=self.config.checkpoint_every, capacity=self.capacity)
         else:
             self._grad_sim.reset(particles)
-        self._grad_sim.set_initial_state(F=self.initial_deformation(particles))
+        self._grad_sim.set_initial_state(**self.initial_state(particles))
         return self._grad_sim
 
     def close(self) -> None:

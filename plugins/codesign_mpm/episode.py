@@ -88,9 +88,10 @@ def run_episode(env: LocomotionEnv, design: DesignFields, controller: Controller
         rewards = torch.stack([env.task.reward(RobotFrame(t, t * dt, com_x[t], com_v[t])) for t in range(1, T + 1)])
         com = com_x.detach().numpy()
     else:
+        start = env.initial_state(particles)
         state = (torch.as_tensor(particles.x, dtype=DTYPE), torch.as_tensor(particles.v, dtype=DTYPE),
                  torch.zeros(particles.n, 3, 3, dtype=DTYPE),
-                 torch.as_tensor(env.initial_deformation(particles), dtype=DTYPE), torch.ones(particles.n, dtype=DTYPE))
+                 torch.as_tensor(start["F"], dtype=DTYPE), torch.as_tensor(start["Jp"], dtype=DTYPE))
         cover_x = None
         rewards, coms, actions = [], [(weights @ state[0][:n]).detach().numpy()], []
         robot_muscle = muscle[:n]

@@ -3,50 +3,106 @@
 A stress-free layer (sand, snow, clay, mud, water) laid on the terrain first falls under gravity
 and then rings, while an episode is already being scored. Here every layer particle starts at
 the geostatic state instead: at depth d below the layer's top the vertical Cauchy stress is
--rho g d, with no lateral strain (a layer wall to wall cannot widen), so
+-rho g d, and the lateral stress is what the material would carry at rest, on or inside its
+yield surface:
 
 - water: the pressure K (1 - J) = rho g d gives J = 1 - rho g d / K and F = J^(1/3) I;
-- the Hencky models (sand, clay, mud): F = diag(1, s, 1) with (lambda + 2 mu) log(s) / s = -rho g d;
-- neo-Hookean-based ones (snow, elastic layers): (mu (s^2 - 1) + lambda log s) / s = -rho g d.
+- sand (Drucker-Prager in Hencky strain): lateral over vertical Kirchhoff stress K0 = 1 - sin(phi)
+  (Jaky's coefficient of earth pressure at rest), F = diag(a, s, a); measured inside the cone for
+  every friction angle (0.57 to 0.72 of its radius at 20 to 45 degrees, nu 0.2), where the laterally
+  confined state (a = 1, K0 = nu / (1 - nu)) lies outside it below about 37 degrees;
+- clay, mud (von Mises in Hencky strain): laterally confined (a = 1) while that is inside the yield
+  surface, else the lateral strain that puts the state on it;
+- snow: laterally confined neo-Hookean while the vertical stretch stays above 1 - theta_c; beyond,
+  the elastic stretch sits at the clamp 1 - theta_c and the plastic volume ratio J_p is the one
+  whose hardening exp(xi (1 - J_p)) carries the load there (within the hardening bound);
+- elastic layers (neo-Hookean, corotated, StVK): laterally confined, each model's own law.
 
-The vertical stretch s is found by Newton's method. Lateral stresses follow from the model (for
-the plastic ones the first substep projects any state outside the yield surface onto it).
-Gravity must point along -y (the terrain's up axis).
+The vertical strain is found by bisection on each model's vertical Cauchy stress. Gravity must
+point along -y (the terrain's up axis).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from codesign_mpm.materials import ID, lame
+from codesign_mpm.materials import ID, MIN_HARDENING, lame
 from codesign_mpm.sampling import Particles
 from codesign_mpm.scene import Scene, SceneError
 
-HENCKY = (ID["sand"], ID["clay"], ID["mud"])
 SETTLING = ("water", "sand", "snow", "clay", "mud")
 """Materials that start settled in any body shape (layers of any material do too)."""
+INSIDE = 1.0 - 1e-6  # states put on a yield surface are put this fraction of the way to it
 
 
-def _vertical_stretch(model: int, E: np.ndarray, nu: np.ndarray, pressure: np.ndarray) -> np.ndarray:
-    """s with sigma_yy(diag(1, s, 1)) = -pressure, by Newton's method from s = 1."""
-    mu, la = lame(E, nu)
-    s = np.ones_like(pressure)
-    for _ in range(30):
-        log_s = np.log(s)
-        if model in HENCKY:  # tau_yy = (lambda + 2 mu) log s, sigma = tau / s
-            f = (la + 2 * mu) * log_s / s + pressure
-            df = (la + 2 * mu) * (1 - log_s) / s ** 2
-        else:  # tau_yy = mu (s^2 - 1) + lambda log s
-            f = (mu * (s * s - 1) + la * log_s) / s + pressure
-            df = mu * (1 + 1 / (s * s)) + la * (1 - log_s) / s ** 2
-        s = s - f / df
-    return s
+def _bisect(stress, pressure: np.ndarray, lo: float = -3.0) -> np.ndarray:
+    """e in [lo, 0] with stress(e) = -pressure, for a vertical Cauchy stress increasing in the log
+    vertical stretch e (stress(0) = 0 >= -pressure)."""
+    a, b = np.full_like(pressure, lo), np.zeros_like(pressure)
+    for _ in range(60):
+        mid = 0.5 * (a + b)
+        below = stress(mid) < -pressure
+        a, b = np.where(below, mid, a), np.where(below, b, mid)
+    return 0.5 * (a + b)
 
 
-def settled_deformation(scene: Scene, particles: Particles) -> np.ndarray:
-    """(N, 3, 3) initial F: geostatic for every layer and every body of water, sand, snow, clay or
-    mud (the depth of a particle is measured from the top of its body in its grid column),
-    identity for the rest (elastic bodies, the robot)."""
+def _hencky_lateral(model: int, mu, la, params, e_v):
+    """The lateral log stretch that goes with the vertical one e_v (< 0) for a Hencky model."""
+    if model == ID["sand"]:
+        alpha = params[:, 0]
+        sin_phi = 3 * alpha / (2 * math.sqrt(2 / 3) + alpha)  # materials.drucker_prager_alpha, inverted
+        k0 = 1 - sin_phi
+        return e_v * (k0 * (2 * mu + la) - la) / (2 * mu + 2 * la * (1 - k0))
+    # von Mises: |e_v - e_h| <= yield / (2 mu) keeps |dev tau| within sqrt(2/3) yield
+    return np.minimum(0.0, e_v + INSIDE * params[:, 0] / (2 * mu))
+
+
+def _settle_model(model: int, particles: Particles, sel: np.ndarray, pressure: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(F (n, 3, 3), J_p (n,)) of the particles `sel` of one material model under `pressure`."""
+    mu, la = lame(particles.youngs_modulus[sel], particles.poisson_ratio[sel])
+    params = particles.params[sel]
+    n = len(sel)
+    F = np.tile(np.eye(3), (n, 1, 1))
+    jp = np.ones(n)
+    if model == ID["water"]:
+        J = 1 - pressure / params[:, 0]
+        return np.cbrt(J)[:, None, None] * np.eye(3), jp
+    if model in (ID["sand"], ID["clay"], ID["mud"]):
+        def stress(e_v):
+            e_h = _hencky_lateral(model, mu, la, params, e_v)
+            return (2 * mu * e_v + la * (e_v + 2 * e_h)) * np.exp(-(e_v + 2 * e_h))
+        e_v = _bisect(stress, pressure)
+        e_h = np.exp(_hencky_lateral(model, mu, la, params, e_v))
+        F[:, 0, 0] = F[:, 2, 2] = e_h
+        F[:, 1, 1] = np.exp(e_v)
+        return F, jp
+    vertical = {  # Cauchy sigma_yy of diag(1, s, 1), s = exp(e), laterally confined
+        ID["neo_hookean"]: lambda s, mu, la: (mu * (s * s - 1) + la * np.log(s)) / s,
+        ID["snow"]: lambda s, mu, la: (mu * (s * s - 1) + la * np.log(s)) / s,
+        ID["corotated"]: lambda s, mu, la: (2 * mu + la) * (s - 1),
+        ID["stvk"]: lambda s, mu, la: s * (2 * mu + la) * (s * s - 1) / 2,
+    }[model]
+    s = np.exp(_bisect(lambda e: vertical(np.exp(e), mu, la), pressure))
+    if model == ID["snow"]:  # beyond the clamp the rest is plastic compaction, which hardens
+        clamp = 1 - params[:, 0]
+        beyond = s < clamp
+        carried = -vertical(clamp, mu, la)  # what the clamped elastic stretch carries, unhardened
+        hardening = np.clip(pressure / carried, MIN_HARDENING, params[:, 3])
+        jp = np.where(beyond, 1 - np.log(hardening) / np.maximum(params[:, 2], 1e-12), 1.0)
+        jp = np.where(beyond & (params[:, 2] > 0), jp, 1.0)
+        s = np.where(beyond, clamp, s)
+    F[:, 1, 1] = s
+    return F, jp
+
+
+def settled_state(scene: Scene, particles: Particles) -> tuple[np.ndarray, np.ndarray]:
+    """((N, 3, 3) initial F, (N,) initial J_p): geostatic for every layer and every body of water,
+    sand, snow, clay or mud (the depth of a particle is measured from the top of its body in its
+    grid column), identity and 1 for the rest (elastic bodies, the robot)."""
     F = np.tile(np.eye(3), (particles.n, 1, 1))
+    jp = np.ones(particles.n)
     g = np.asarray(scene.gravity, dtype=float)
     if not np.allclose(g[[0, 2]], 0.0) or g[1] > 0:
         raise SceneError(f"gravity = {list(scene.gravity)} is invalid for a settled start: it must point "
@@ -62,11 +118,5 @@ def settled_deformation(scene: Scene, particles: Particles) -> np.ndarray:
         spacing = scene.dx / round(body.particles_per_cell ** (1 / 3))
         depth = top[column] + spacing / 2 - x[:, 1]  # the body's top face lies half a spacing above its last particles
         pressure = particles.density[sel] * -g[1] * depth
-        model = int(particles.material[sel[0]])
-        if model == ID["water"]:
-            J = 1 - pressure / particles.params[sel, 0]
-            F[sel] = np.cbrt(J)[:, None, None] * np.eye(3)
-        else:
-            F[sel, 1, 1] = _vertical_stretch(model, particles.youngs_modulus[sel], particles.poisson_ratio[sel],
-                                             pressure)
-    return F
+        F[sel], jp[sel] = _settle_model(int(particles.material[sel[0]]), particles, sel, pressure)
+    return F, jp

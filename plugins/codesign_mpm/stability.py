@@ -47,7 +47,7 @@ class Size:
 class Case:
     name: str
     description: str
-    build: Callable  # (setting) -> (sim, initial F or None, actions(frame) -> (K,))
+    build: Callable  # (setting) -> (sim, initial state (set_initial_state keywords) or None, actions(frame) -> (K,))
     sizes: dict[str, Size] = field(default_factory=dict)
     backward_from_end: bool = True  # the differentiable rollout starts where the forward run ended
     admissible: bool = True  # inside the documented input range: must run its whole horizon finite
@@ -111,7 +111,7 @@ def near_inverted(s: Setting):
     F = np.tile(np.eye(3), (sim.n, 1, 1))
     F[::7] = np.diag([0.1, 0.1, 0.1])  # J = 1e-3
     F[3] = np.diag([-0.05, 1.0, 1.0])  # inverted
-    return sim, F, bang_bang(sim.n_actuators)
+    return sim, {"F": F}, bang_bang(sim.n_actuators)
 
 
 def tiny_mass(s: Setting):
@@ -142,7 +142,7 @@ def under_load(environment: str):
         env = LocomotionEnv(config, preset)
         sim = Simulator(env.scene, env.particles, requires_grad=True, max_frames=GRAD_MAX_FRAMES,
                         checkpoint_every=GRAD_SEGMENT)
-        return sim, env.initial_deformation(env.particles), bang_bang(sim.n_actuators)
+        return sim, env.initial_state(env.particles), bang_bang(sim.n_actuators)
     return build
 
 
@@ -208,10 +208,10 @@ def run_case(name: str, size: str, s: Setting) -> dict:
     sim, stage = None, "building"
     t0 = time.perf_counter()
     try:
-        sim, F0, actions = case.build(s)
+        sim, initial, actions = case.build(s)
         record.update(particles=sim.n, substeps_per_frame=sim.timestep.substeps, dt=sim.timestep.dt)
-        if F0 is not None:
-            sim.set_initial_state(F=F0)
+        if initial is not None:
+            sim.set_initial_state(**initial)
         x, v, _, F = sim.particles_state()
         e0, _ = energy(sim, x, v, F)
         sim.audit_work = True

@@ -45,7 +45,7 @@ def check_every_input(name: str) -> None:
     rng = np.random.default_rng(2)
     actions = random_actions(env, T, seed=1)
     w_com, wx = rng.normal(size=(T + 1, 3)), rng.normal(size=(p.n, 3)) / p.n
-    sim.set_initial_state(F=env.initial_deformation(p))  # the environment's settled start: the cover at rest
+    sim.set_initial_state(**env.initial_state(p))  # the environment's settled start: the cover at rest
     start = sim.snapshot()
 
     def loss(a=actions) -> float:
