@@ -1,10 +1,11 @@
-"""diff_physics through the runner on a tiny crawler (float64, 4 control steps): control alone and
-design alone both lower the loss, and with equal budgets co-design beats both.
+"""diff_physics through the runner on a tiny crawler (float64, 4 control steps, muscles at 0.4 E, the
+strongest admissible): control alone and design alone both lower the loss, and with equal budgets
+co-design beats both.
 
 Measured (best return after 12 Adam steps, lr 0.1; first return in brackets):
-seed 0: control 0.076, design -0.038, both 0.083 (-0.070); seed 1: 0.043, 0.029, 0.076 (0.001);
-seed 2: 0.061, 0.045, 0.087 (0.021). Co-design's margin over the better single mode: 0.007,
-0.033, 0.026. The test checks seeds 1 and 2 with a margin of 0.01: a weak but real check.
+seed 0: control 0.045, design -0.022, both 0.050 (-0.043); seed 1: 0.015, 0.021, 0.032 (0.008);
+seed 2: 0.027, 0.020, 0.043 (0.012). Co-design's margin over the better single mode: 0.006,
+0.011, 0.017. The test checks seeds 1 and 2 with a margin of 0.005: a weak but real check.
 """
 import json
 
@@ -21,7 +22,8 @@ def best_and_first(mode: str, seed: int, tmp_path) -> tuple[float, float, list]:
         "name": f"crawler-{mode}",
         "seed": seed,
         "environment": {"name": "ground", "dx": 1 / 32, "horizon": 4, "dtype": "float64",
-                        "terrain": {"height": 0.1, "friction": 0.5}, "robot": {"size": [0.16, 0.08, 0.08]}},
+                        "terrain": {"height": 0.1, "friction": 0.5},
+                        "robot": {"size": [0.16, 0.08, 0.08], "muscle_stiffness_ratio": 0.4}},
         "representation": {"name": "particle"},
         "controller": {"name": "sine", "init_std": 1.0},
         "optimizer": {"name": "diff_physics", "optimize": mode, "iterations": 12, "lr_control": 0.1, "lr_design": 0.1},
@@ -35,10 +37,10 @@ def best_and_first(mode: str, seed: int, tmp_path) -> tuple[float, float, list]:
 def test_co_design_beats_control_alone_and_design_alone_with_equal_budgets(seed, tmp_path):
     results = {mode: best_and_first(mode, seed, tmp_path) for mode in ("control", "design", "both")}
     for mode, (best, first, rows) in results.items():
-        assert best > first + 0.01, (mode, first, best)  # each mode lowers the loss
+        assert best > first + 0.005, (mode, first, best)  # each mode lowers the loss
         trained = {"control": {"control"}, "design": {"design"}, "both": {"control", "design"}}[mode]
         assert {key[len("grad_norm_"):] for key in rows[0] if key.startswith("grad_norm_")} == trained
-    assert results["both"][0] > max(results["control"][0], results["design"][0]) + 0.01, results
+    assert results["both"][0] > max(results["control"][0], results["design"][0]) + 0.005, results
 
 
 def test_a_resumed_diff_physics_run_ends_with_the_numbers_of_an_uninterrupted_one(tmp_path):
