@@ -92,6 +92,7 @@ none, while the stability cases that blew up at the rest step run finite)."""
 MAX_ADAPTIVE_CFL = 0.8  # nor above this CFL number, whatever scene.cfl (measured stable in docs/stability.md)
 MAX_FREE_STORAGES = 4  # compiled storages kept for reuse after their simulators close; older ones are freed
 GRID_STORE_BYTES = 256 * 1024**2  # at most this much keeps a segment's grids for the reverse pass
+GRID_STORE_MARGIN = 2.0  # a rollout's grid records hold this times the particles' box at its start (or the largest seen)
 CHECKPOINT_MEMORY_BYTES = 128 * 1024**2  # a rollout's checkpoints beyond this go to a temporary file
 NORM_FLOOR = 1e-30  # |dev eps|^2 below this is treated as this (only reached where the result is masked off)
 
@@ -1066,16 +1067,16 @@ class _Storage:
     @ti.kernel
     def _store_grid(self, k: ti.i32, store: ti.types.ndarray(), box: ti.types.ndarray()):
         """Keep this substep's grid momentum and mass over the touched box as record k of `store`
-        ((records, nodes, 4)) for the reverse pass, which then need not run p2g again; a box larger
-        than a record is marked box[k, 0] = -1, and the reverse pass recomputes that substep."""
+        ((records, nodes, 4)) for the reverse pass, which then need not run p2g again. box[k] holds
+        the box (lo, hi) and whether it fit (box[k, 6]); the reverse pass recomputes a substep whose
+        box was larger than a record, and the next rollout's records grow to the largest box seen."""
         lo = ti.Vector([self.lo[0][None], self.lo[1][None], self.lo[2][None]])
         extent = ti.Vector([self.hi[0][None], self.hi[1][None], self.hi[2][None]]) - lo
         fits = self.members * extent[0] * extent[1] * extent[2] <= store.shape[1]
-        box[k, 0] = -1
-        if fits:
-            for d in ti.static(range(3)):
-                box[k, d] = lo[d]
-                box[k, 3 + d] = lo[d] + extent[d]
+        for d in ti.static(range(3)):
+            box[k, d] = lo[d]
+            box[k, 3 + d] = lo[d] + extent[d]
+        box[k, 6] = ti.cast(fits, ti.i32)
         for b, i, j, l in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             if fits:
@@ -1401,6 +1402,7 @@ class Simulator:
         self._initial_jp: np.ndarray | None = None
         self.rollouts = 0
         self._grid_store = self._grid_boxes = None  # the segment's grids, kept for the reverse pass
+        self._largest_box = 0  # nodes of the largest box a backward pass saw: the next records hold it
         self._checkpoints = CheckpointStore(CHECKPOINT_MEMORY_BYTES)
         self._changes = 0  # bumped by anything that alters the state a rollout's backward pass replays
         self._measured = (-1, -1)  # (changes, slot) of the state `_check` last measured in `step`
@@ -1841,11 +1843,12 @@ class Simulator:
         if self.scene.grid_region != "full":
             self.k._bounds(0, self.n)
             volume = math.prod(self.k.hi[d][None] - self.k.lo[d][None] for d in range(3))
-            nodes = min(2 * volume, GRID_STORE_BYTES // (self.segment * 4 * np.dtype(self.np_real).itemsize))
+            nodes = min(max(int(GRID_STORE_MARGIN * volume), self._largest_box),
+                        GRID_STORE_BYTES // (self.segment * 4 * np.dtype(self.np_real).itemsize))
         shape = (self.segment, max(nodes, 1), 4)
         if self._grid_store is None or self._grid_store.shape != shape:
             self._grid_store = ti.ndarray(ti.f64 if self.np_real is np.float64 else ti.f32, shape)
-            self._grid_boxes = ti.ndarray(ti.i32, (self.segment, 6))
+            self._grid_boxes = ti.ndarray(ti.i32, (self.segment, 7))
 
     @property
     def rollout_is_current(self) -> bool:
@@ -1897,7 +1900,9 @@ class Simulator:
                     self._set_dt(self.scene.frame_dt / substeps[frame_of[g0 + s]])
                     self._substep(s, s + 1, frame_of[g0 + s], keep_grid=True)
                 self._segment_in_slots = k
-            kept = self._grid_boxes.to_numpy()[:L, 0] >= 0
+            boxes = self._grid_boxes.to_numpy()[:L]
+            kept = boxes[:, 6] == 1
+            self._largest_box = max(self._largest_box, int(np.prod(boxes[:, 3:6] - boxes[:, :3], axis=1).max()))
             for f in (self.k.x, self.k.v, self.k.C, self.k.F) + ((self.k.Jp,) if self.k.has_jp else ()):
                 f.grad.fill(0)
             self.k._add_grad(L, n, *carry[:4])

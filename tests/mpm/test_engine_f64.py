@@ -172,13 +172,26 @@ def test_gradients_are_the_same_with_the_grids_kept_or_recomputed(sim, actions, 
 
     wx = np.random.default_rng(4).normal(size=(sim.n, 3)) / sim.n
     kept = gradients(sim, actions, weights, wx, checkpoint_every=5)
-    assert (sim._grid_boxes.to_numpy()[:5, 0] >= 0).all(), "every substep's grid should have been kept"
+    assert (sim._grid_boxes.to_numpy()[:5, 6] == 1).all(), "every substep's grid should have been kept"
     monkeypatch.setattr(engine, "GRID_STORE_BYTES", 0)
     recomputed = gradients(sim, actions, weights, wx, checkpoint_every=5)
-    assert (sim._grid_boxes.to_numpy()[:5, 0] < 0).all(), "no grid fits an empty store"
+    assert (sim._grid_boxes.to_numpy()[:5, 6] == 0).all(), "no grid fits an empty store"
     for name in ("actions", "youngs_modulus", "muscle", "volume", "x0", "v0"):
         np.testing.assert_allclose(getattr(recomputed, name), getattr(kept, name), rtol=1e-12,
                                    atol=1e-15 * np.abs(getattr(kept, name)).max(), err_msg=name)
+
+
+def test_grid_records_grow_to_the_largest_box_a_backward_pass_saw(sim, actions, weights, monkeypatch):
+    """Records sized under the particles' box keep nothing; the next rollout's hold every box."""
+    from codesign_mpm import engine
+
+    wx = np.zeros((sim.n, 3))
+    monkeypatch.setattr(engine, "GRID_STORE_MARGIN", 0.5)
+    monkeypatch.setattr(sim, "_largest_box", 0)
+    gradients(sim, actions, weights, wx, checkpoint_every=5)
+    assert (sim._grid_boxes.to_numpy()[:5, 6] == 0).all()
+    gradients(sim, actions, weights, wx, checkpoint_every=5)
+    assert (sim._grid_boxes.to_numpy()[:5, 6] == 1).all()
 
 
 def test_gradients_are_the_same_with_checkpoints_in_a_file(sim, actions, weights, monkeypatch):
