@@ -111,12 +111,14 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
         run_dir: Path = typer.Argument(..., help="A run directory with a best/ design and controller."),
         episodes: int = typer.Option(1, "--episodes", min=1, help="Episodes to replay."),
     ) -> None:
-        """Replay a run's best design and controller and print the return of each episode."""
+        """Replay a run's best design and controller and print the return of each episode, with the
+        body's integrity where the environment measures it (torn-off mass, thinnest part)."""
         from codesign import runner
 
-        returns = runner.evaluate_best(run_dir, episodes)
-        for i, value in enumerate(returns):
-            typer.echo(f"episode {i}: return {value:.6g}")
+        records = runner.replay_best(run_dir, episodes)
+        for i, record in enumerate(records):
+            typer.echo(episode_line(i, record.episode_return, record.metrics))
+        returns = [record.episode_return for record in records]
         typer.echo(f"mean return {sum(returns) / len(returns):.6g} over {len(returns)} episode(s)")
 
     @app.command()
@@ -152,6 +154,21 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
 
     plugin_manager.hook.codesign_cli(app=app)
     return app
+
+
+def episode_line(i: int, episode_return: float, metrics: dict[str, float]) -> str:
+    """`codesign eval`'s line for one replayed episode: its return, then the body's integrity figures
+    that the environment reports (`codesign.artifacts.EPISODE_METRICS`), where it does."""
+    line = f"episode {i}: return {episode_return:.6g}"
+    if metrics.get("unplayable"):
+        return line + " (the environment refused the design: not played)"
+    if "torn_fraction" in metrics:
+        line += f", torn off {100 * metrics['torn_fraction']:.3g}% of the robot's mass"
+        if metrics.get("torn_at_frame"):
+            line += f" (first over the tolerance at frame {metrics['torn_at_frame']:.0f})"
+    if "thinnest_cells" in metrics:
+        line += f", thinnest part {metrics['thinnest_cells']:.3g} cells"
+    return line
 
 
 def _disabled_plugins(argv: list[str]) -> list[str]:

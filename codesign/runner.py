@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from omegaconf import OmegaConf
@@ -40,6 +40,9 @@ from codesign.progress import progress_bar
 from codesign.plugins import get_plugin_manager, get_registry
 from codesign.recipe import ResolvedRecipe, resolve_recipe
 from codesign.tracking import JsonlTracker, MultiTracker, Tracker, WandbTracker
+
+if TYPE_CHECKING:
+    from codesign.artifacts import EpisodeRecord
 
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.jsonl"
@@ -241,13 +244,19 @@ def best_parts(run_dir: str | Path) -> Iterator[tuple[Parts, Any, np.random.Gene
         parts.environment.close()
 
 
-def evaluate_best(run_dir: str | Path, episodes: int = 1) -> list[float]:
-    """Replay a run's best design and controller for `episodes` episodes; their returns."""
+def replay_best(run_dir: str | Path, episodes: int = 1) -> list[EpisodeRecord]:
+    """Replay a run's best design and controller for `episodes` episodes; their records (return,
+    trajectory and the environment's episode metrics, e.g. an MPM body's torn_fraction)."""
     from codesign.artifacts import play
 
     with best_parts(run_dir) as (parts, design, rng):
-        return [play(parts.environment, design, parts.controller, seed=int(rng.integers(2**31))).episode_return
+        return [play(parts.environment, design, parts.controller, seed=int(rng.integers(2**31)))
                 for _ in range(episodes)]
+
+
+def evaluate_best(run_dir: str | Path, episodes: int = 1) -> list[float]:
+    """Replay a run's best design and controller for `episodes` episodes; their returns."""
+    return [record.episode_return for record in replay_best(run_dir, episodes)]
 
 
 def _make_tracker(recipe: ResolvedRecipe, data: dict, run_dir: Path) -> Tracker:

@@ -79,3 +79,16 @@ def test_plugins_add_commands(cli):
 def test_every_command_has_help(cli, command):
     code, out, _ = cli(command, "--help")
     assert code == 0 and "Usage" in out
+
+
+def test_eval_lines_name_the_bodys_integrity_where_the_environment_measures_it():
+    from codesign.cli import episode_line
+
+    assert episode_line(0, 1.5, {}) == "episode 0: return 1.5"  # e.g. the toy environment: no body
+    assert episode_line(1, 7.0123, {"torn_fraction": 0.0, "thinnest_cells": 2.5, "torn_at_frame": 0.0}) == \
+        "episode 1: return 7.0123, torn off 0% of the robot's mass, thinnest part 2.5 cells"
+    assert episode_line(2, 3.0, {"torn_fraction": 0.2345, "thinnest_cells": 1.0, "torn_at_frame": 34.0}) == \
+        ("episode 2: return 3, torn off 23.4% of the robot's mass (first over the tolerance at frame 34), "
+         "thinnest part 1 cells")
+    assert episode_line(3, float("nan"), {"unplayable": 1.0}) == \
+        "episode 3: return nan (the environment refused the design: not played)"

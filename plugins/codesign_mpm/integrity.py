@@ -9,7 +9,8 @@ the robot mass outside its largest such piece.
 
 A feature thinner than about two cells is carried by one or two rows of nodes and tears at
 small strains; `thinnest_cells` measures a design's thinnest part at rest, on the particle
-lattice it was sampled on, as the largest cube (in grid cells) that fits around every part.
+lattice it was sampled on, as the largest cube (in grid cells) that fits around every part (up to
+the steps of a curved surface).
 """
 from __future__ import annotations
 
@@ -23,6 +24,9 @@ STENCIL_REACH = 2
 """Base cells at most this far apart (per axis) share a node of their 3x3x3 stencils (`pieces`)."""
 MIN_THICKNESS_CELLS = 2.0
 """Designs thinner than this (in grid cells) tear under actuation; the representations keep above it."""
+SURFACE_STEP_CELLS = 0.5
+"""How far (in cells) a lattice point may lie from the cubes that measure thickness: the steps a
+lattice makes of a curved surface, which no cube covers (without it every curved body read 0.5 cells)."""
 
 
 def pieces(x: np.ndarray, dx: float) -> np.ndarray:
@@ -73,38 +77,42 @@ def lattice_occupancy(points: np.ndarray, spacing: float) -> np.ndarray:
 def resolved_body(points: np.ndarray, occupied: np.ndarray, spacing: float, dx: float,
                   min_cells: float = MIN_THICKNESS_CELLS) -> np.ndarray:
     """The part of a design the grid can carry: of the `occupied` points of a sampling lattice of
-    `spacing`, those inside a cube at least `min_cells` grid cells wide that fits in the occupied
-    set (a morphological opening), then only the largest piece their stencils join (`pieces`).
-    (N,) bool; all False where nothing is thick enough."""
+    `spacing`, those within `SURFACE_STEP_CELLS` of a cube at least `min_cells` grid cells wide that
+    fits in the occupied set (`thinnest_cells`' measure), then only the largest piece their stencils
+    join (`pieces`). (N,) bool; all False where nothing is thick enough."""
     occupied = np.asarray(occupied, dtype=bool)
     if not occupied.any():
         return occupied
     index = lattice_index(points, spacing)
     grid = np.zeros(index.max(0) + 2, dtype=bool)
     grid[tuple(index[occupied].T)] = True
-    k = max(1, math.ceil(min_cells * dx / spacing - 1e-9))
-    opened = ndimage.binary_opening(grid, structure=np.ones((k, k, k), dtype=bool))
-    kept = occupied & opened[tuple(index.T)]
+    core = _cube_core(grid, max(1, math.ceil(min_cells * dx / spacing - 1e-9)), spacing, dx)
+    kept = occupied & core[tuple(index.T)]
     if kept.any():
         label = pieces(points[kept], dx)
         kept[np.flatnonzero(kept)] = label == np.bincount(label).argmax()
     return kept
 
 
-def thinnest_cells(points: np.ndarray, spacing: float, dx: float, max_cells: float = 4.0) -> float:
-    """Thinnest part of a body at rest, in grid cells: the largest k such that every occupied
-    lattice voxel lies in a k x k x k cube of occupied voxels (a morphological opening),
-    converted from lattice spacings to cells; at most `max_cells` is looked for.
+def _cube_core(grid: np.ndarray, k: int, spacing: float, dx: float) -> np.ndarray:
+    """The voxels of `grid` within `SURFACE_STEP_CELLS` of a k x k x k cube of occupied voxels: the
+    parts at least k voxels thick, with the staircase a lattice makes of a curved surface."""
+    opened = ndimage.binary_opening(grid, structure=np.ones((k, k, k), dtype=bool))
+    step = max(1, math.ceil(SURFACE_STEP_CELLS * dx / spacing - 1e-9))
+    return grid & ndimage.binary_dilation(opened, structure=np.ones((2 * step + 1,) * 3, dtype=bool))
 
-    `points` lie on a lattice of `spacing` (the sampling lattice: dx / ppc^(1/3))."""
+
+def thinnest_cells(points: np.ndarray, spacing: float, dx: float, max_cells: float = 4.0) -> float:
+    """Thinnest part of a body at rest, in grid cells: the largest k such that every point of its
+    sampling lattice (of `spacing`, dx / ppc^(1/3)) lies within `SURFACE_STEP_CELLS` of a cube of
+    k x k x k occupied lattice points (a morphological opening; the tolerance lets a curved surface's
+    staircase pass, which no cube covers); at most `max_cells` is looked for."""
     if len(points) == 0:
         return 0.0
     grid = lattice_occupancy(np.asarray(points, dtype=np.float64), spacing)
-    largest = max(1, int(round(max_cells * dx / spacing)))
     fits = 1
-    for k in range(2, largest + 1):
-        opened = ndimage.binary_opening(grid, structure=np.ones((k, k, k), dtype=bool))
-        if (opened != grid).any():
+    for k in range(2, max(1, round(max_cells * dx / spacing)) + 1):
+        if (_cube_core(grid, k, spacing, dx) != grid).any():
             break
         fits = k
     return fits * spacing / dx

@@ -9,8 +9,12 @@ only composites the particles over it.
 
 Colours: ground-cover particles by material kind (sand, snow, clay, water, mud), robot particles
 by muscle activation a = u . r_p (the action times the particle's membership): red for
-a > 0 (contraction), blue for a < 0, grey where passive. Stills colour the design by muscle
-group (the tab10 colours of `codesign.artifacts.PALETTE`, as in best/design.ply).
+a > 0 (contraction), blue for a < 0, grey where passive; orange (whatever the activation) where
+a robot particle has torn off its body: it lies outside the body's largest piece at that frame
+(by mass; by count for an export, which has no masses), pieces being the particles whose B-spline
+stencils share grid nodes (`codesign_mpm.integrity.pieces`; docs/integrity.md), and the frame's
+label says the share of the robot's mass torn off ("torn 23.5% (orange)"). Stills colour the
+design by muscle group (the tab10 colours of `codesign.artifacts.PALETTE`, as in best/design.ply).
 
 Videos are written with imageio: ``.mp4`` (H.264 through imageio-ffmpeg, which ships its own
 ffmpeg binary, so nothing is needed from the system; small files that W&B and browsers play)
@@ -46,6 +50,7 @@ TERRAIN = np.array([0.55, 0.50, 0.42])
 PASSIVE = np.array([0.62, 0.62, 0.65])
 CONTRACT = np.array([0.86, 0.10, 0.10])  # a > 0
 EXTEND = np.array([0.10, 0.25, 0.90])  # a < 0
+TORN = np.array([1.00, 0.50, 0.00])  # orange: a robot particle torn off its body (`Recording.torn`)
 MATERIAL_COLORS: dict[str, tuple[float, float, float]] = {
     "neo_hookean": (0.45, 0.70, 0.45), "corotated": (0.45, 0.70, 0.45), "stvk": (0.45, 0.70, 0.45),
     "sand": (0.87, 0.76, 0.50), "snow": (0.93, 0.95, 1.00), "clay": (0.74, 0.46, 0.30),
@@ -66,10 +71,33 @@ class Recording:
     frame_dt: float
     dx: float
     heights: np.ndarray | None  # (nx, nz) terrain height on grid nodes; None: no terrain
+    mass: np.ndarray | None = None  # (N,) particle mass (volume x density); None: unknown, pieces count particles
+    body: np.ndarray | None = None  # (N,) index of the particle's body in the scene; None: one robot body
 
     @property
     def frames(self) -> int:
         return len(self.x) - 1
+
+    def torn(self, frame: int) -> np.ndarray:
+        """(N,) robot particles torn off their body at `frame`: outside the body's largest piece (by
+        mass where `mass` is known, else by count) of particles whose stencils share grid nodes
+        (`codesign_mpm.integrity.pieces` at the recording's dx)."""
+        from codesign_mpm.integrity import pieces
+
+        torn = np.zeros(len(self.material), dtype=bool)
+        body = self.body if self.body is not None else np.zeros(len(self.material), dtype=np.int64)
+        for b in np.unique(body[self.robot]):
+            members = np.flatnonzero(self.robot & (body == b))
+            label = pieces(self.x[frame][members], self.dx)
+            size = np.bincount(label, weights=None if self.mass is None else self.mass[members])
+            torn[members] = label != size.argmax()
+        return torn
+
+    def torn_fraction(self, torn: np.ndarray) -> float:
+        """The share of the robot's mass (of its particles, without masses) that `torn` marks."""
+        weight = np.ones(len(self.material)) if self.mass is None else np.asarray(self.mass, dtype=np.float64)
+        total = weight[self.robot].sum()
+        return float(weight[torn & self.robot].sum() / total) if total > 0 else 0.0
 
     def activation(self, frame: int) -> np.ndarray:
         """a = u . r_p of every particle at `frame` (the action that moved it there; 0 at frame 0)."""
@@ -99,7 +127,8 @@ def load_npz(path: str | Path) -> Recording:
     dx = float(data["dx"]) if "dx" in data.files else float(np.prod(np.ptp(x[0], 0) + 1e-9) / n) ** (1 / 3) * 2
     return Recording(x, actions, data["material"], data["robot"].astype(bool) if "robot" in data.files
                      else np.zeros(n, bool), muscle, float(data["frame_dt"]) if "frame_dt" in data.files else 0.0,
-                     dx, data["height_map"] if "height_map" in data.files else None)
+                     dx, data["height_map"] if "height_map" in data.files else None,
+                     body=data["body"] if "body" in data.files else None)
 
 
 def record_episode(env: LocomotionEnv, design: DesignFields | None, controller: Controller,
@@ -134,7 +163,8 @@ def record_episode(env: LocomotionEnv, design: DesignFields | None, controller: 
     k = particles.muscle.shape[1]
     heights = height_map(env.scene) if env.scene.terrain.kind != "none" else None
     return Recording(np.stack(xs), np.array(actions).reshape(len(actions), k), particles.material.copy(),
-                     particles.robot.copy(), particles.muscle.copy(), env.control_dt, env.scene.dx, heights)
+                     particles.robot.copy(), particles.muscle.copy(), env.control_dt, env.scene.dx, heights,
+                     mass=particles.volume * particles.density, body=particles.body.copy())
 
 
 def record_run(run_dir: str | Path, steps: int | None = None) -> Recording:
@@ -283,6 +313,17 @@ def particle_colors(rec: Recording, frame: int, scale: float) -> np.ndarray:
     return colors
 
 
+def episode_colors(rec: Recording, frame: int, scale: float) -> tuple[np.ndarray, float]:
+    """`particle_colors` with the robot particles torn off their body (`Recording.torn`) orange, and
+    the share of the robot's mass torn off (0: whole)."""
+    colors = particle_colors(rec, frame, scale)
+    torn = rec.torn(frame)
+    if not torn.any():
+        return colors, 0.0
+    colors[torn] = TORN
+    return colors, rec.torn_fraction(torn)
+
+
 def group_colors(rec: Recording) -> np.ndarray:
     """Robot particles by their strongest muscle group (grey without one); others by material."""
     colors = particle_colors(rec, 0, 0.0)
@@ -324,8 +365,11 @@ class Renderer:
         return np.asarray(self.figure.canvas.buffer_rgba())[..., :3].copy()
 
     def frame(self, f: int) -> np.ndarray:
-        t = f * self.rec.frame_dt
-        return self.draw(particle_colors(self.rec, f, self.scale), f, f"t = {t:6.3f} s  frame {f}/{self.rec.frames}")
+        colors, torn = episode_colors(self.rec, f, self.scale)
+        label = f"t = {f * self.rec.frame_dt:6.3f} s  frame {f}/{self.rec.frames}"
+        if torn > 0:
+            label += f"  torn {100 * torn:.3g}% (orange)"
+        return self.draw(colors, f, label)
 
     def __iter__(self) -> Iterator[np.ndarray]:
         return (self.frame(f) for f in range(self.rec.frames + 1))

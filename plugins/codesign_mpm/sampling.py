@@ -10,6 +10,7 @@ bodies' particles occupy, so no two bodies overlap.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +18,7 @@ import numpy as np
 
 from codesign.bodies import Body, BodyError, Labels, library_body, load_body
 from codesign.geometry import grid_partition
+from codesign_mpm.integrity import MIN_THICKNESS_CELLS, thinnest_cells
 from codesign_mpm.materials import MATERIALS, pack_params
 from codesign_mpm.scene import BodySpec, Scene, SceneError, ShapeSpec
 from codesign_mpm.terrain import height_map
@@ -177,6 +179,8 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
         raise SceneError(f"{key}.shape = {body.shape!r} is invalid: it holds no particle at "
                          f"dx={scene.dx}; make it larger or the grid finer")
     local = offsets
+    if body.shape.kind == "body":
+        _warn_thin(scene, key, body.shape, local, spacing)
     offsets = local @ rotation_matrix(body.rotation).T
     center = np.asarray(body.center, dtype=float)
     if body.rest_on_terrain:
@@ -233,6 +237,18 @@ def _check_resolved(scene: Scene, key: str, shape: ShapeSpec) -> None:
             raise SceneError(f"{_body_source(key, shape)} is invalid: fitted to size {list(shape.size)} the body is "
                              f"{extent:.3g} thick along {axis}, under one grid cell (dx = {scene.dx:.4g}); make it "
                              "larger or the grid finer")
+
+
+def _warn_thin(scene: Scene, key: str, shape: ShapeSpec, local: np.ndarray, spacing: float) -> None:
+    """Warn when a body's thinnest part (on its sampling lattice, before rotation) is under
+    `integrity.MIN_THICKNESS_CELLS` grid cells: the grid carries it on one or two rows of nodes and it
+    tears at small strains. (A design representation drops such parts; a scene keeps them.)"""
+    cells = thinnest_cells(local, spacing, scene.dx, MIN_THICKNESS_CELLS)
+    if cells < MIN_THICKNESS_CELLS:
+        warnings.warn(f"{_body_source(key, shape)}: fitted to size {list(shape.size)}, its thinnest part is "
+                      f"{cells:.3g} grid cells thick at dx = {scene.dx:.4g}, under the {MIN_THICKNESS_CELLS:g} cells "
+                      "the grid carries without tearing; give the body a larger size or the grid a finer dx",
+                      UserWarning, stacklevel=2)
 
 
 def _body_labels(scene: Scene, key: str, shape: ShapeSpec, local: np.ndarray) -> Labels:

@@ -6,6 +6,7 @@ scene of gradient_checks.py) and feed each representation's
 fields to it through the torch bridge without dropping particles: volume = base volume x
 occupancy keeps the particle layout whatever the design.
 """
+import warnings
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from codesign.plugins import get_registry
 from codesign_mpm.bridge import simulate
 from codesign_mpm.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
 from codesign_mpm.engine import Simulator
+from codesign_mpm.sampling import build_particles
 from codesign_mpm.env import LocomotionEnv
 from codesign_mpm.scene import BodySpec, MuscleSpec, Scene, SceneError, ShapeSpec, validate_scene
 from test_environments import ENVIRONMENTS  # same folder: pytest puts it on sys.path
@@ -141,6 +143,32 @@ def test_bad_robot_bodies_are_recipe_errors_naming_the_file(tmp_path):
     with pytest.raises(RecipeError, match=r"shape.body = 'panda' is invalid: its muscle group \d \(\w+ \w+ leg\) holds "
                                           r"no particle at dx = 0.03125"):
         make_env(body="panda", size=[0.1, 0.1, 0.1])
+
+
+def test_a_body_thinner_than_two_grid_cells_warns_naming_dx(tmp_path):
+    """A plate 1.6 cells thick (over one cell, so not refused) is sampled with a warning that names the
+    file, its thinnest part, dx and the remedy; a slab 4.8 cells thick, or a ball 3.2 cells wide (whose
+    curved surface steps on the lattice are not thin parts), is sampled silently."""
+    trimesh.creation.box(extents=[0.3, 0.05, 0.3]).export(tmp_path / "plate.stl")
+    trimesh.creation.box(extents=[0.3, 0.15, 0.3]).export(tmp_path / "slab.stl")
+    trimesh.creation.icosphere(subdivisions=3).export(tmp_path / "ball.stl")
+
+    def scene(name: str, size: float = 0.3) -> Scene:
+        return Scene(size=[0.6, 0.5, 0.6], dx=1 / 32, bodies=[BodySpec(
+            shape=ShapeSpec(kind="body", file=str(tmp_path / name), size=[size] * 3), center=[0.3, 0.25, 0.3])])
+
+    with pytest.warns(UserWarning, match="dx") as caught:
+        build_particles(scene("plate.stl"))
+    assert [str(w.message) for w in caught if "plate.stl" in str(w.message)] == [
+        f"bodies[0].shape.file = '{tmp_path / 'plate.stl'}': fitted to size [0.3, 0.3, 0.3], its thinnest part is 1.5 "
+        "grid cells thick at dx = 0.03125, under the 2 cells the grid carries without tearing; give the body a larger "
+        "size or the grid a finer dx"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        build_particles(scene("slab.stl"))
+        build_particles(scene("ball.stl", size=0.1))
+        build_particles(Scene(size=[0.6, 0.5, 0.6], dx=1 / 32, bodies=[BodySpec(  # boxes are not checked
+            shape=ShapeSpec(kind="box", size=[0.3, 0.05, 0.3]), center=[0.3, 0.25, 0.3])]))
 
 
 @pytest.mark.parametrize("shape, muscles, message", [

@@ -54,14 +54,23 @@ def test_thinnest_cells_of_a_plate_is_its_thickness(cells):
     assert thinnest_cells(plate, H, DX) == pytest.approx(cells)
 
 
+def test_a_curved_body_reads_as_thick_as_it_is():
+    """A ball 5 cells across, sampled on the lattice: its surface staircase does not make it thin."""
+    grid = box([0.2, 0.2, 0.2], [0.36, 0.36, 0.36])
+    ball = grid[np.linalg.norm(grid - 0.28, axis=1) <= 2.5 * DX]
+    assert thinnest_cells(ball, H, DX) >= 2.5  # its inscribed cube is 2.9 cells wide; without the tolerance: 0.5
+    assert resolved_body(ball, np.ones(len(ball), bool), H, DX).all()
+
+
 def test_the_resolution_filter_drops_thin_fins_and_loose_blobs_and_keeps_thick_bodies():
     body = box([0.2, 0.2, 0.2], [0.4, 0.28, 0.28])  # 6.4 x 2.56 x 2.56 cells
     fin = box([0.4, 0.2, 0.2], [0.5, 0.2 + DX, 0.28])  # one cell thick, attached
     blob = box([0.6, 0.2, 0.2], [0.7, 0.28, 0.28])  # thick but apart, and smaller
     points = np.vstack([body, fin, blob])
     kept = resolved_body(points, np.ones(len(points), bool), H, DX)
-    n_body = len(body)
-    assert kept[:n_body].all() and not kept[n_body:].any()
+    n_body, n_fin = len(body), len(fin)
+    assert kept[:n_body].all() and not kept[n_body + n_fin:].any()
+    assert (points[n_body:n_body + n_fin][kept[n_body:n_body + n_fin], 0] < 0.4 + DX / 2).all()  # a stub at most
     assert thinnest_cells(points[kept], H, DX) >= 2
     assert not resolved_body(fin, np.ones(len(fin), bool), H, DX).any()  # nothing thick enough: empty
 

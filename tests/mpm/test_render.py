@@ -1,6 +1,6 @@
 """`codesign render`: videos of a run's best episode and of a `simulate --export`, and stills, all
 headless. Frames are read back and checked by colour: robot red/blue (muscle activation) or grey
-(passive), muscle-group colours in stills, and motion between frames."""
+(passive), orange where torn off the body, muscle-group colours in stills, and motion between frames."""
 import os
 import subprocess
 import sys
@@ -12,7 +12,7 @@ import pytest
 from codesign import plugins, runner
 from codesign.artifacts import PALETTE
 from codesign.recipe import resolve_recipe
-from codesign_mpm.render import render
+from codesign_mpm.render import TORN, Renderer, episode_colors, record_run, render
 from codesign_mpm.scene import BodySpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec
 from codesign_mpm.simulate import simulate
 
@@ -78,6 +78,40 @@ def test_the_still_shows_each_muscle_group_in_its_colour_and_replays_nothing(run
         close = np.linalg.norm(direction - color / np.linalg.norm(color), axis=-1) < 0.06
         seen += int(close[60:-90].sum() > 100)  # away from the title and the legend
     assert seen >= 3  # the oblique camera sees at least three of the four groups
+
+
+def orange(r, g, b):
+    return (r > 170) & (g > 70) & (g < 150) & (b < 40)
+
+
+def test_particles_torn_off_the_body_are_orange_and_the_label_says_how_much(run_dir):
+    """The replayed episode's body stays whole; moved 10 cells away in one frame, its front tenth is a
+    piece of its own: exactly those particles turn orange and the label gives their share of the mass."""
+    rec = record_run(run_dir)
+    robot = np.flatnonzero(rec.robot)
+    assert rec.mass is not None and len(rec.mass) == len(rec.material) and (rec.mass[robot] > 0).all()
+    for f in range(rec.frames + 1):  # a whole body has no torn particle
+        colors, torn = episode_colors(rec, f, 1.0)
+        assert torn == 0.0 and not rec.torn(f).any() and not (colors == TORN).all(1).any()
+    moved = np.sort(robot[np.argsort(rec.x[2][robot, 0])[-len(robot) // 10:]])  # the front tenth of the body
+    rec.x = rec.x.copy()
+    rec.x[2][moved, 0] += 10 * rec.dx
+    colors, torn = episode_colors(rec, 2, 1.0)
+    assert np.array_equal(np.flatnonzero((colors == TORN).all(1)), moved)
+    assert torn == pytest.approx(rec.mass[moved].sum() / rec.mass[robot].sum())
+    renderer = Renderer(rec, "side")
+    images = [renderer.frame(f) for f in (1, 2)]
+    assert f"torn {100 * torn:.3g}% (orange)" in renderer.text.get_text()
+    assert count(images[0], orange) == 0 and count(images[1], orange) > 50
+
+
+def test_eval_prints_the_replayed_bodys_integrity(run_dir, cli):
+    """`codesign eval` names, besides the return, the robot mass torn off and the design's thinnest part."""
+    code, out, err = cli("eval", str(run_dir))
+    assert code == 0, err
+    line = next(line for line in out.splitlines() if line.startswith("episode 0: return "))
+    assert ", torn off 0% of the robot's mass, thinnest part " in line and line.endswith(" cells")
+    assert float(line.split("thinnest part ")[1].split()[0]) >= 2
 
 
 def test_an_export_renders_to_gif_in_a_process_without_display(tmp_path):
