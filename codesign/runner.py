@@ -225,12 +225,17 @@ def load_run_data(run_dir: str | Path) -> tuple[dict, ResolvedRecipe]:
 
 
 @contextmanager
-def best_parts(run_dir: str | Path) -> Iterator[tuple[Parts, Any, np.random.Generator]]:
-    """The run's parts rebuilt from its config, set up as the run set them up, holding its best
-    controller; yields (parts, best design, the run's generator) and closes the environment."""
+def best_parts(run_dir: str | Path, overrides: dict | None = None
+               ) -> Iterator[tuple[Parts, Any, np.random.Generator]]:
+    """The run's parts rebuilt from its config (with `overrides` merged in, e.g.
+    {"environment": {"cfl": 0.1}}), set up as the run set them up, holding its best controller;
+    yields (parts, best design, the run's generator) and closes the environment."""
     from codesign.artifacts import load_controller, load_design
 
-    _, recipe = load_run_data(run_dir)
+    data, recipe = load_run_data(run_dir)
+    if overrides:
+        recipe = resolve_recipe(OmegaConf.to_container(OmegaConf.merge(OmegaConf.create(data),
+                                                                       OmegaConf.create(overrides)), resolve=False))
     parts = build_parts(recipe)
     try:
         rng = seed_everything(recipe.seed)

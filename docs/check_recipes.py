@@ -11,29 +11,16 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from omegaconf import OmegaConf
-
-from codesign.artifacts import load_controller, load_design, play
-from codesign.recipe import resolve_recipe
-from codesign.runner import build_parts, load_run_data, seed_everything
+from codesign.artifacts import play
+from codesign.runner import best_parts, load_run_data
 
 
 def replay(run_dir: Path, cfl_factor: float = 1.0):
     """The best design and controller of `run_dir` for one episode, with cfl x `cfl_factor`."""
-    data, recipe = load_run_data(run_dir)
+    _, recipe = load_run_data(run_dir)
     cfl = recipe.sections["environment"].config.cfl * cfl_factor
-    recipe = resolve_recipe(OmegaConf.to_container(OmegaConf.merge(
-        OmegaConf.create(data), OmegaConf.create({"environment": {"cfl": cfl}})), resolve=False))
-    parts = build_parts(recipe)
-    try:
-        rng = seed_everything(recipe.seed)
-        env = parts.environment
-        parts.representation.setup(env.design_space, rng)
-        parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
-        load_controller(run_dir, parts.controller)
-        return play(env, load_design(run_dir), parts.controller, seed=int(rng.integers(2**31)))
-    finally:
-        parts.environment.close()
+    with best_parts(run_dir, {"environment": {"cfl": cfl}}) as (parts, design, rng):
+        return play(parts.environment, design, parts.controller, seed=int(rng.integers(2**31)))
 
 
 def main(run_dirs: list[str]) -> None:
