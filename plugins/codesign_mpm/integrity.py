@@ -39,10 +39,10 @@ def pieces(x: np.ndarray, dx: float) -> np.ndarray:
         return np.zeros(0, dtype=np.int64)
     base = np.floor(np.asarray(x, dtype=np.float64) / dx - 0.5).astype(np.int64)
     index = base - base.min(0)
-    occupied = np.zeros(index.max(0) + 2, dtype=bool)
+    occupied = np.zeros(index.max(0) + STENCIL_REACH, dtype=bool)
     occupied[tuple(index.T)] = True
     boxes = occupied.copy()
-    for shift in np.ndindex(2, 2, 2):  # boxes[c + e] |= occupied[c], e in {0, 1}^3
+    for shift in np.ndindex(*(STENCIL_REACH,) * 3):  # boxes[c + e] |= occupied[c], e in {0, 1}^3
         if any(shift):
             boxes[shift[0]:, shift[1]:, shift[2]:] |= occupied[:occupied.shape[0] - shift[0],
                                                                 :occupied.shape[1] - shift[1],
