@@ -4,7 +4,7 @@ their backward kernels in parallel).
 
 For the elastic robot alone (ground) and on each ground cover (sand, clay, mud, snow, water),
 everything a rollout differentiates (actions, volume, Young's modulus, muscle membership,
-fibre, x0, v0) is checked from the environment's settled start (cover and robot at rest, the cover
+fibre, x0, v0, C0 and, in snow, J_p0) is checked from the environment's settled start (cover and robot at rest, the cover
 carrying its own weight) over enough frames that the cover carries the robot's.
 Each plastic cover's stress Jacobian is then checked on its own: one substep from rest with
 the cover held at a chosen deformation (F = I or confined, where eigenvalues coincide;
@@ -59,13 +59,17 @@ def check_every_input(name: str) -> None:
         foot = robot[np.argmin(p.x[robot, 1])]  # a robot particle on the ground (or in the cover)
         cases = [("actions", (0, 0), 1e-6), ("actions", (T - 1, 3), 1e-6), ("volume", foot, 1e-5 * p.volume[foot]),
                  ("youngs_modulus", foot, 1e-6 * p.youngs_modulus[foot]), ("muscle", (foot, 1), 1e-6),
-                 ("fiber", (foot, 1), 1e-6), ("x0", (foot, 0), 1e-6), ("v0", (foot, 1), 1e-6)]
+                 ("fiber", (foot, 1), 1e-6), ("x0", (foot, 0), 1e-6), ("v0", (foot, 1), 1e-6),
+                 ("C0", (foot, 0, 1), 1e-4)]
         if len(cover):
             assert np.abs(g.x0[cover]).max() > 0, "the cover should influence the loss"
             under = cover[np.argmax(np.abs(g.v0[cover]).sum(1))]  # the cover particle that matters most
-            cases += [("x0", (under, 1), 1e-6), ("v0", (under, 0), 1e-6), ("volume", under, 1e-5 * p.volume[under])]
+            cases += [("x0", (under, 1), 1e-6), ("v0", (under, 0), 1e-6), ("volume", under, 1e-5 * p.volume[under]),
+                      ("C0", (under, 1, 0), 1e-4)]  # the closed-loop bridge carries C between frames
             if COVERS[name] != "water":  # water's stiffness is its bulk modulus, not E
                 cases.append(("youngs_modulus", under, 1e-6 * p.youngs_modulus[under]))
+            if COVERS[name] == "snow":  # snow's plastic volume ratio is state too (settled: compacted)
+                cases.append(("Jp0", under, 1e-6))
 
         def perturbed(field, index, eps):
             sim.restore(start)
@@ -73,6 +77,11 @@ def check_every_input(name: str) -> None:
                 a = actions.copy()
                 a[index] += eps
                 return loss(a)
+            if field in ("C0", "Jp0"):
+                value = np.zeros((p.n, 3, 3)) if field == "C0" else env.initial_state(p)["Jp"].copy()
+                value[index] += eps
+                sim.set_initial_state(**{field[:-1]: value})
+                return loss()
             source = {"x0": "x", "v0": "v"}.get(field, field)
             value = getattr(p, source).copy()
             value[index] += eps
