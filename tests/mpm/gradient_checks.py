@@ -38,8 +38,9 @@ def assert_matches(analytic: float, numeric: float, scale: float, what) -> None:
     assert analytic == pytest.approx(numeric, rel=1e-4, abs=1e-4 * scale), (what, analytic, numeric, scale)
 
 
-def check_every_input(name: str) -> None:
-    env = make_env(name, dtype="float64")
+def check_every_input(name: str, **overrides) -> None:
+    """`overrides`: the environment config's (e.g. a Perlin terrain, a viscous cover)."""
+    env = make_env(name, dtype="float64", **overrides)
     sim = Simulator(env.scene, env.particles, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=SEGMENT)
     p = env.particles
     rng = np.random.default_rng(2)

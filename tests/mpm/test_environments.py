@@ -12,8 +12,8 @@ DX = 1 / 32
 
 def make_env(name: str, dtype: str = "float32", horizon: int = 50, **overrides) -> LocomotionEnv:
     """The registered preset at test resolution; the terrain is raised above the wall band."""
-    config = PRESET_CONFIGS[name](dx=DX, horizon=horizon, dtype=dtype, terrain=TerrainConfig(
-        height=0.1, friction=PRESETS[name].friction), **overrides)
+    terrain = overrides.pop("terrain", TerrainConfig(height=0.1, friction=PRESETS[name].friction))
+    config = PRESET_CONFIGS[name](dx=DX, horizon=horizon, dtype=dtype, terrain=terrain, **overrides)
     return LocomotionEnv(config, PRESETS[name])
 
 

@@ -2,6 +2,7 @@
 against central finite differences (float64; see gradient_checks.py)."""
 import pytest
 
+from codesign_mpm.config import CoverConfig, TerrainConfig
 from gradient_checks import check_every_input, check_stress_jacobian  # same folder: on sys.path under pytest
 
 pytestmark = pytest.mark.slow
@@ -15,3 +16,19 @@ def test_every_input_gradient_matches_finite_differences(name):
 @pytest.mark.parametrize("name", ['shallow_water'])
 def test_stress_jacobian_matches_finite_differences(name):
     check_stress_jacobian(name)
+
+
+VARIANTS = {
+    # the terrain's height and normals vary from column to column: contact and friction along slopes
+    "ground on Perlin terrain": ("ground", dict(terrain=TerrainConfig(kind="perlin", height=0.1, amplitude=0.03,
+                                                                      frequency=6.0, friction=0.5))),
+    # every preset's water is inviscid: the viscous stress's gradient otherwise goes unchecked
+    "viscous shallow water": ("shallow_water", dict(cover=CoverConfig(kind="water", thickness=0.05,
+                                                                      bulk_modulus=1e5, viscosity=20.0))),
+}
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_every_input_gradient_matches_finite_differences_on_variants(variant):
+    name, overrides = VARIANTS[variant]
+    check_every_input(name, **overrides)
