@@ -159,15 +159,22 @@ def check_stress_jacobian(name: str) -> None:
         env.close()
 
 
-def check_muscled_plastic_body(muscle_model: str) -> None:
-    """A clay robot with muscles (yielding under them): the hand-written reverse of the return
-    mapping carries the muscle stress's gradients (action, membership, fibre, stiffness) through
-    the projected F, for either muscle model."""
+MUSCLED_BODIES = {
+    "clay": MaterialSpec(kind="clay", youngs_modulus=1e4, yield_stress=100.0),
+    "sand": MaterialSpec(kind="sand", youngs_modulus=1e4, friction_angle=30.0, cohesion=20.0),
+    "snow": MaterialSpec(kind="snow", youngs_modulus=1e4),
+    "mud": MaterialSpec(kind="mud", youngs_modulus=1e4, poisson_ratio=0.3, yield_stress=50.0, viscosity=1.0),
+}
+
+
+def check_muscled_plastic_body(muscle_model: str, kind: str = "clay") -> None:
+    """A robot of a plastic material with muscles (yielding under them): the hand-written reverse of
+    the return mapping carries the muscle stress's gradients (action, membership, fibre, stiffness)
+    through the projected F, for either muscle model."""
     scene = Scene(size=[1.0, 0.5, 0.5], dx=1 / 32, dtype="float64", muscle_model=muscle_model,
                   terrain=TerrainSpec(kind="flat", height=0.1, friction=0.5),
                   bodies=[BodySpec(name="robot", robot=True, shape=ShapeSpec(size=[0.16, 0.08, 0.08]),
-                                   center=[0.5, 0.0, 0.25], rest_on_terrain=True,
-                                   material=MaterialSpec(kind="clay", youngs_modulus=1e4, yield_stress=100.0),
+                                   center=[0.5, 0.0, 0.25], rest_on_terrain=True, material=MUSCLED_BODIES[kind],
                                    muscles=MuscleSpec(groups=[2, 2, 1]))])
     p = build_particles(scene)
     sim = Simulator(scene, p, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=SEGMENT)
@@ -201,6 +208,29 @@ def check_muscled_plastic_body(muscle_model: str) -> None:
                                   ("youngs_modulus", worked, 1e-6 * p.youngs_modulus[worked])]:
             gradient = getattr(g, field)
             assert_matches(gradient[index], central(lambda e: shifted(field, index, e), eps),
-                           np.abs(gradient).max(), (muscle_model, field, index))
+                           np.abs(gradient).max(), (kind, muscle_model, field, index))
     finally:
         sim.close()
+
+
+def check_float32_against_float64(name: str) -> None:
+    """The default precision's gradients point where float64's do (cosine > 0.99 for actions,
+    Young's modulus and x0 over the whole episode), through the early-stopping eigen-solve, which
+    only float32 exercises (its tolerance is 64 round-offs of b's trace)."""
+    grads = {}
+    for dtype in ("float64", "float32"):
+        env = make_env(name, dtype=dtype)
+        sim = Simulator(env.scene, env.particles, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=SEGMENT)
+        try:
+            sim.set_initial_state(**env.initial_state(env.particles))
+            actions = random_actions(env, T, seed=1)
+            w_com = np.random.default_rng(7).normal(size=(T + 1, 3))
+            sim.rollout(actions, checkpoint_every=7)
+            grads[dtype] = sim.backward(com_x=w_com)
+        finally:
+            sim.close()
+            env.close()
+    for field in ("actions", "youngs_modulus", "x0"):
+        a, b = (np.ravel(getattr(grads[d], field)) for d in ("float64", "float32"))
+        cosine = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+        assert cosine > 0.99, (name, field, cosine)

@@ -20,3 +20,7 @@ def test_stress_jacobian_matches_finite_differences(name):
 @pytest.mark.parametrize("muscle_model", ["active", "energy"])
 def test_a_muscled_clay_body_matches_finite_differences(muscle_model):
     check_muscled_plastic_body(muscle_model)
+
+
+def test_a_muscled_mud_body_matches_finite_differences():
+    check_muscled_plastic_body("active", "mud")
