@@ -1371,6 +1371,10 @@ class Simulator:
     def __init__(self, scene: Scene, particles: Particles, *, requires_grad: bool = False,
                  max_frames: int = 1, checkpoint_every: int | None = None, capacity: int | None = None) -> None:
         validate_scene(scene)
+        if requires_grad and ID["corotated"] in set(particles.material.tolist()):
+            raise SceneError("material kind 'corotated' is invalid in a differentiable simulator (requires_grad): "
+                             "its polar decomposition has no reverse mode in Taichi; use neo_hookean (the "
+                             "robots' default) or stvk, or simulate it without gradients")
         runtime.init_taichi(scene.arch, scene.dtype)
         self.scene = scene
         self.np_real = np.float64 if scene.dtype == "float64" else np.float32
@@ -1767,8 +1771,8 @@ class Simulator:
     # ------------------------------------------------------------------ differentiable rollout
     def rollout(self, actions: np.ndarray, checkpoint_every: int | None = None, start: State | None = None
                 ) -> Rollout:
-        """Run len(actions) frames from the initial state (or `start`, a mid-episode state, at
-        the current time step), storing checkpoints for `backward`.
+        """Run len(actions) frames from the initial state (or `start`, a mid-episode state), each
+        frame at the substeps its starting state needs, storing checkpoints for `backward`.
 
         `checkpoint_every` (substeps) may be lowered per rollout, down to 1; it cannot exceed
         the simulator's, which sized the storage.
@@ -1825,9 +1829,8 @@ class Simulator:
                 self.on_frame(self.positions(s))
         self._slot = s
         self._segment_in_slots = len(self._checkpoints) - 1 if keep else None  # backward need not recompute it
-        x, v, C, F = self.particles_state(self._slot)
-        final = State(*(a.astype(np.float64) for a in (x, v, C, F, self.plastic_volume_ratio(self._slot))))
-        self._final = self._state(self._slot)
+        self._final = self._state(self._slot)  # where backward() leaves the simulator
+        final = State(*(a.astype(np.float64) for a in (*self._final[:4], self.plastic_volume_ratio(self._slot))))
         self._rollout_changes = self._changes
         self.frame = T
         self._tracked_mass = float(self._probe_density @ self.particles.volume)

@@ -473,3 +473,43 @@ def test_a_scene_without_actuators_rolls_out_and_differentiates():
             assert g.v0[index] == pytest.approx(numeric, rel=1e-4), index
     finally:
         sim.close()
+
+
+def test_a_corotated_body_is_refused_for_gradients_with_a_clear_error():
+    """Taichi's reverse mode cannot differentiate the polar decomposition (it failed inside backward())."""
+    from codesign_mpm import SceneError
+
+    scene = robot_scene(kind="corotated")
+    with pytest.raises(SceneError, match=r"'corotated' is invalid in a differentiable simulator .* use neo_hookean"):
+        Simulator(scene, build_particles(scene), requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=64)
+    Simulator(scene, build_particles(scene)).close()  # forward only: fine
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model", ["stvk"])
+def test_the_other_elastic_models_gradients_match_finite_differences(model, actions, weights):
+    """A StVK body (its stress differentiated by Taichi, the neo-Hookean's by hand): actions,
+    stiffness and initial velocity through contact, against central differences."""
+    scene = robot_scene(kind=model)
+    other = Simulator(scene, build_particles(scene), requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=64)
+    p = other.particles
+    wx = np.random.default_rng(12).normal(size=(p.n, 3)) / p.n
+    contact = int(np.argmin(p.x[:, 1]))
+    try:
+        g = gradients(other, actions, weights, wx, checkpoint_every=5)
+
+        def perturbed(kind, index, eps):
+            a, E, v = actions.copy(), p.youngs_modulus.copy(), p.v.copy()
+            {"action": a, "stiffness": E, "v0": v}[kind][index] += eps
+            other.set_design(youngs_modulus=E)
+            other.set_initial_state(v=v)
+            return loss(other, a, weights, wx, 5)
+
+        for kind, index, eps, analytic in [("action", (1, 0), 1e-6, g.actions[1, 0]),
+                                           ("action", (4, 3), 1e-6, g.actions[4, 3]),
+                                           ("stiffness", contact, 1e-2, g.youngs_modulus[contact]),
+                                           ("v0", (contact, 0), 1e-6, g.v0[contact, 0])]:
+            numeric = central_difference(lambda e: perturbed(kind, index, e), eps)
+            assert analytic == pytest.approx(numeric, rel=1e-4, abs=1e-9 * max(1.0, abs(numeric))), (model, kind)
+    finally:
+        other.close()
