@@ -91,6 +91,8 @@ instability, not a finer accuracy target (at 1x, the quick start's gait took 32%
 none, while the stability cases that blew up at the rest step run finite)."""
 MAX_ADAPTIVE_CFL = 0.8  # nor above this CFL number, whatever scene.cfl (measured stable in docs/stability.md)
 MAX_FREE_STORAGES = 4  # compiled storages kept for reuse after their simulators close; older ones are freed
+MAX_DEAD_STORAGES = 32  # freed storages (their kernels stay compiled) before an idle program is recycled
+DRIVE_CHUNK = 256  # particles whose action gradients one thread adds up before its one atomic add
 GRID_STORE_BYTES = 256 * 1024**2  # at most this much keeps a segment's grids for the reverse pass
 GRID_STORE_MARGIN = 2.0  # a rollout's grid records hold this times the particles' box at its start (or the largest seen)
 CHECKPOINT_MEMORY_BYTES = 128 * 1024**2  # a rollout's checkpoints beyond this go to a temporary file
@@ -304,6 +306,7 @@ class _Storage:
         self.muscle = vec(K, (n,), True)
         self.fiber = vec(3, (n,), True)
         self.muscle_ratio = scalar((n,))
+        self.drive_bar = scalar((n,))  # d loss / d activation of each particle's muscle (the hand adjoints)
         self.probe_w = scalar((n,))
         self.act = vec(K, (rows,), True)
         self.com_x = vec(3, (rows,), True)
@@ -747,12 +750,23 @@ class _Storage:
             u_bar = 4.0 * s * (c * sym_u + 2.0 * q * u)
             a_bar = 4.0 * s * q
             s_bar = 4.0 * c * q
-        if s != 0.0:  # particles without muscle contribute nothing (and skip the atomic adds)
+        if s != 0.0:  # particles without muscle contribute nothing
             self.fiber.grad[p] = self.fiber.grad[p] + F.transpose() @ u_bar
             self.muscle.grad[p] = self.muscle.grad[p] + a_bar * act
             self.E.grad[p] = self.E.grad[p] + self.muscle_ratio[p] * s_bar
-            self.act.grad[t] += a_bar * self.muscle[p]  # a sum over particles: atomic
+        self.drive_bar[p] = a_bar  # the action row's gradient sums these (`_add_drive_grad`)
         return u_bar.outer_product(f)
+
+    @ti.kernel
+    def _add_drive_grad(self, t: ti.i32, start: ti.i32, end: ti.i32):
+        """Action row t's gradient from the muscles of particles [start, end): sum_p drive_bar_p m_p,
+        added up in chunks of DRIVE_CHUNK particles, one atomic add per chunk (an atomic add per
+        particle onto one row serialises every thread on it)."""
+        for c in range((end - start + DRIVE_CHUNK - 1) // DRIVE_CHUNK):
+            total = ti.Vector.zero(float, ti.static(self.act.n))
+            for p in range(start + c * DRIVE_CHUNK, ti.min(end, start + (c + 1) * DRIVE_CHUNK)):
+                total += self.drive_bar[p] * self.muscle[p]
+            self.act.grad[t] += total
 
     @ti.kernel
     def _plastic_adjoint_front(self, model: ti.template(), s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32,
@@ -1320,7 +1334,8 @@ def _model_runs(material: np.ndarray) -> list[tuple[int, int, int]]:
 
 
 _free: "OrderedDict[int, tuple[tuple[int, Layout], _Storage]]" = OrderedDict()  # released storages, oldest first
-_freed: list[_Storage] = []
+_freed: list[tuple[int, _Storage]] = []  # (generation, storage) freed in this Taichi program
+_in_use: dict[int, int] = {}  # id -> generation of the storages of live simulators
 
 
 def _acquire(layout: Layout) -> _Storage:
@@ -1330,12 +1345,16 @@ def _acquire(layout: Layout) -> _Storage:
     for key, (wanted, storage) in reversed(_free.items()):
         if wanted == (runtime.generation, layout):
             del _free[key]
-            return storage
-    return _Storage(layout)
+            break
+    else:
+        storage = _Storage(layout)
+    _in_use[id(storage)] = runtime.generation
+    return storage
 
 
 def _release(generation: int, storage: _Storage) -> None:
     """Keep a closed simulator's storage for reuse, freeing the oldest beyond MAX_FREE_STORAGES."""
+    _in_use.pop(id(storage), None)
     if generation != runtime.generation:
         return
     _free[id(storage)] = ((generation, storage.layout), storage)
@@ -1344,7 +1363,17 @@ def _release(generation: int, storage: _Storage) -> None:
         oldest.free()
         # Taichi keys a data-oriented object's compiled kernels by the object's id(): keep the
         # (now empty) object alive so no new storage can take its id and run its stale kernels
-        _freed.append(oldest)
+        _freed.append((generation, oldest))
+
+
+def _recycle_program() -> None:
+    """Start a fresh Taichi program once more than MAX_DEAD_STORAGES storages were freed in this
+    one and no simulator is alive: Taichi keeps every storage's compiled kernels until a reset,
+    so without this a long sweep over many layouts would grow without bound."""
+    _freed[:] = [entry for entry in _freed if entry[0] == runtime.generation]
+    if len(_freed) > MAX_DEAD_STORAGES and runtime.generation not in _in_use.values():
+        runtime.reset()
+        _freed.clear()
 
 
 def _unit_fibers(fiber: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1371,6 +1400,7 @@ class Simulator:
     def __init__(self, scene: Scene, particles: Particles, *, requires_grad: bool = False,
                  max_frames: int = 1, checkpoint_every: int | None = None, capacity: int | None = None) -> None:
         validate_scene(scene)
+        _recycle_program()
         if requires_grad and ID["corotated"] in set(particles.material.tolist()):
             raise SceneError("material kind 'corotated' is invalid in a differentiable simulator (requires_grad): "
                              "its polar decomposition has no reverse mode in Taichi; use neo_hookean (the "
@@ -1651,6 +1681,9 @@ class Simulator:
                 self.k._neo_hookean_adjoint(s, s + 1, t, start, end)
             else:
                 self.k._constitutive_update.grad(model, s, s + 1, t, start, end, 0)
+                continue
+            if self.layout.has_muscles:
+                self.k._add_drive_grad(t, start, end)
 
     def _set_dt(self, dt: float) -> None:
         """The substep the kernels use from now on (written only when it changes)."""

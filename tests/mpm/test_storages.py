@@ -1,0 +1,50 @@
+"""Compiled storages: reused by simulators of the same layout, freed beyond a few, and a Taichi
+program with too many freed ones recycled once no simulator is alive (bounded memory in sweeps)."""
+import numpy as np
+
+from codesign_mpm import BodySpec, Scene, ShapeSpec, build_particles, runtime
+from codesign_mpm import engine
+from codesign_mpm.engine import Simulator
+
+SCENE = Scene(size=[0.5, 0.5, 0.5], dx=1 / 24, bodies=[BodySpec(shape=ShapeSpec(size=[0.12, 0.12, 0.12]),
+                                                                 center=[0.25, 0.2, 0.25])])
+
+
+def fall(max_frames: int) -> tuple[Simulator, np.ndarray]:
+    """A simulator of a layout of its own (its rows follow max_frames) and where its box falls to."""
+    sim = Simulator(SCENE, build_particles(SCENE), max_frames=max_frames)
+    sim.step(frames=3)
+    return sim, sim.particles_state()[0]
+
+
+def test_a_closed_simulators_storage_serves_the_next_of_its_layout():
+    first, x_first = fall(1)
+    storage = first.k
+    first.close()
+    again, x_again = fall(1)
+    assert again.k is storage  # no new fields, no compile
+    np.testing.assert_array_equal(x_again, x_first)
+    again.close()
+
+
+def test_freed_storages_are_bounded_by_recycling_an_idle_program(monkeypatch):
+    monkeypatch.setattr(engine, "MAX_FREE_STORAGES", 0)  # every closed storage is freed at once
+    monkeypatch.setattr(engine, "MAX_DEAD_STORAGES", 1)
+    generation = runtime.generation
+    reference = None
+    for layout in (1, 2, 3):  # the third simulator finds two freed storages and no live one
+        sim, x = fall(layout)
+        reference = x if reference is None else reference
+        np.testing.assert_array_equal(x, reference)
+        sim.close()
+    recycled = runtime.generation
+    assert recycled > generation and len(engine._freed) == 1  # only the third's, of the new program
+    live, _ = fall(4)  # a live simulator holds its program: no recycling under it
+    for layout in (5, 6):
+        sim, _ = fall(layout)
+        sim.close()
+    Simulator(SCENE, build_particles(SCENE), max_frames=7).close()  # finds three freed storages
+    assert runtime.generation == recycled and len(engine._freed) == 4
+    live.step(frames=1)
+    assert np.isfinite(live.particles_state()[0]).all()
+    live.close()
