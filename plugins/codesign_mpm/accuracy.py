@@ -420,7 +420,8 @@ PROBLEMS: dict[str, Problem] = {
         "robot_ground", "Robot on ground: distance in 1 s (quick size: 0.25 s)", "distance travelled along x",
         "converged: the finest setting (a fixed sine gait, environment `ground`)", measure_robot("ground"), {},
         notes="Locomotion through frictional contact is sensitive to the discretisation: compare designs and "
-              "controllers at one setting (one quality preset), not across settings."),
+              "controllers at one setting (one quality preset), not across settings. Why, measured: "
+              "docs/contact.md (with today's admissible muscles this gait moves the robot only 1 to 2 mm)."),
     "robot_desert": Problem(
         "robot_desert", "Robot in the desert (sand cover): distance in 1 s (quick size: 0.25 s)",
         "distance travelled along x",

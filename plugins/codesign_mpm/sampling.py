@@ -57,6 +57,19 @@ def lattice(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
+def fitted_lattice(lo: np.ndarray, hi: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Cell centres of a lattice that spans [lo, hi] exactly, each axis split into round(extent /
+    spacing) equal cells (the same count `lattice` gives), and the cells' edges. A body then has
+    its shape's extents at every dx instead of snapping to the spacing: on a plain lattice a box
+    0.08 high sampled 0.0833 high at dx 1/48 and 0.078 at dx 1/32 (measured), so the muscles'
+    lever arms, the mass's height and the contact patch changed with the resolution."""
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    counts = np.maximum(1, np.round((hi - lo) / spacing)).astype(int)
+    cell = (hi - lo) / counts
+    axes = [a + (np.arange(c) + 0.5) * h for a, c, h in zip(lo, counts, cell)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3), cell
+
+
 def _load_points(path: Path) -> np.ndarray:
     if path.suffix == ".npy":
         return np.asarray(np.load(path), dtype=np.float64).reshape(-1, 3)
@@ -77,29 +90,30 @@ def _fitted_body(key: str, shape: ShapeSpec) -> Body:
     return body.fitted(shape.size)
 
 
-def _shape_points(key: str, shape: ShapeSpec, spacing: float) -> tuple[np.ndarray, float]:
-    """Particle offsets from the body centre and the shape's total volume."""
+def _shape_points(key: str, shape: ShapeSpec, spacing: float) -> tuple[np.ndarray, float, float]:
+    """Particle offsets from the body centre, the shape's total volume and the particles' vertical
+    spacing (a lattice fitted to the shape's bounds: `fitted_lattice`)."""
     if shape.kind == "body":
         body = _fitted_body(key, shape)
-        p = lattice(*body.bounds, spacing)
+        p, cell = fitted_lattice(*body.bounds, spacing)
         p = p[body.contains(p)]
-        return p, len(p) * spacing ** 3
+        return p, len(p) * float(np.prod(cell)), cell[1]
     if shape.kind in ("box", "ellipsoid"):
         size = np.asarray(shape.size, dtype=float)
-        p = lattice(-size / 2, size / 2, spacing)
+        p, cell = fitted_lattice(-size / 2, size / 2, spacing)
         if shape.kind == "box":
-            return p, float(np.prod(size))
-        return p[((2 * p / size) ** 2).sum(1) <= 1], float(np.pi / 6 * np.prod(size))
+            return p, float(np.prod(size)), cell[1]
+        return p[((2 * p / size) ** 2).sum(1) <= 1], float(np.pi / 6 * np.prod(size)), cell[1]
     if shape.kind == "sphere":
         r = shape.radius
-        p = lattice(np.full(3, -r), np.full(3, r), spacing)
-        return p[(p ** 2).sum(1) <= r * r], 4 / 3 * np.pi * r ** 3
+        p, cell = fitted_lattice(np.full(3, -r), np.full(3, r), spacing)
+        return p[(p ** 2).sum(1) <= r * r], 4 / 3 * np.pi * r ** 3, cell[1]
     if shape.kind == "capsule":
         r, h = shape.radius, shape.length / 2
-        p = lattice(np.array([-h - r, -r, -r]), np.array([h + r, r, r]), spacing)
+        p, cell = fitted_lattice(np.array([-h - r, -r, -r]), np.array([h + r, r, r]), spacing)
         axial = np.clip(p[:, 0], -h, h)
         inside = (p[:, 0] - axial) ** 2 + p[:, 1] ** 2 + p[:, 2] ** 2 <= r * r
-        return p[inside], np.pi * r * r * shape.length + 4 / 3 * np.pi * r ** 3
+        return p[inside], np.pi * r * r * shape.length + 4 / 3 * np.pi * r ** 3, cell[1]
     path = Path(shape.file or "")
     if not path.is_file():
         raise SceneError(f"{key}.shape.file = {shape.file!r} is invalid: no such file")
@@ -108,9 +122,9 @@ def _shape_points(key: str, shape: ShapeSpec, spacing: float) -> tuple[np.ndarra
         if occ.ndim != 3:
             raise SceneError(f"{key}.shape.file = {shape.file!r} is invalid: need a 3-D boolean array")
         size = np.asarray(occ.shape) * shape.voxel_size
-        p = lattice(-size / 2, size / 2, spacing)
+        p, cell = fitted_lattice(-size / 2, size / 2, spacing)
         idx = np.clip(((p + size / 2) / shape.voxel_size).astype(int), 0, np.asarray(occ.shape) - 1)
-        return p[occ[idx[:, 0], idx[:, 1], idx[:, 2]]], float(occ.sum() * shape.voxel_size ** 3)
+        return p[occ[idx[:, 0], idx[:, 1], idx[:, 2]]], float(occ.sum() * shape.voxel_size ** 3), cell[1]
     if shape.kind == "mesh":
         import trimesh
 
@@ -119,16 +133,17 @@ def _shape_points(key: str, shape: ShapeSpec, spacing: float) -> tuple[np.ndarra
         mesh.apply_translation(-(lo + hi) / 2)
         mesh.apply_scale(shape.scale / (hi - lo).max())
         lo, hi = mesh.bounds
-        p = lattice(lo, hi, spacing)
+        p, cell = fitted_lattice(lo, hi, spacing)
         inside = mesh.contains(p)
-        return p[inside], float(mesh.volume) if mesh.is_watertight else inside.sum() * spacing ** 3
+        volume = float(mesh.volume) if mesh.is_watertight else inside.sum() * float(np.prod(cell))
+        return p[inside], volume, cell[1]
     # points: used as given; each stands for the volume of the lattice cells it occupies
     pts = _load_points(path)
     lo, hi = pts.min(0), pts.max(0)
     pts = (pts - (lo + hi) / 2) * (shape.scale / (hi - lo).max())
     h = (np.prod(np.maximum(hi - lo, 1e-12)) * (shape.scale / (hi - lo).max()) ** 3 / len(pts)) ** (1 / 3)
     cells = np.unique(np.floor(pts / h).astype(np.int64), axis=0)
-    return pts, len(cells) * h ** 3
+    return pts, len(cells) * h ** 3, spacing
 
 
 def rotation_matrix(degrees: list[float]) -> np.ndarray:
@@ -174,7 +189,7 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
     spacing = scene.dx / per_axis
     if body.shape.kind == "body":
         _check_resolved(scene, key, body.shape)
-    offsets, total_volume = _shape_points(key, body.shape, spacing)
+    offsets, total_volume, rise = _shape_points(key, body.shape, spacing)
     if len(offsets) == 0:
         raise SceneError(f"{key}.shape = {body.shape!r} is invalid: it holds no particle at "
                          f"dx={scene.dx}; make it larger or the grid finer")
@@ -190,7 +205,7 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
         ground = heights[ij[:, 0], ij[:, 1]].max()
         # the lowest particles half a lattice spacing above the surface: the body's face touches it,
         # with no free grid cell beneath for a ground cover to fill
-        center[1] = ground + body.rest_offset + spacing / 2 - offsets[:, 1].min()
+        center[1] = ground + body.rest_offset + rise / 2 - offsets[:, 1].min()
     x = offsets + center
     margin = scene.wall
     lo_ok = (x >= margin).all()

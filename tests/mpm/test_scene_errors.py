@@ -74,6 +74,27 @@ def test_particle_volume_follows_sampling_density():
     assert coarse.n < fine.n / 20
 
 
+@pytest.mark.parametrize("dx", [1 / 24, 1 / 32, 1 / 48, 1 / 64])
+def test_a_box_has_its_size_and_centre_at_every_dx(dx):
+    """The lattice is fitted to the shape: a plain one snapped the 0.08 height to 0.078 or 0.083."""
+    size, center = np.array([0.2, 0.08, 0.06]), np.array([0.5, 0.4, 0.5])
+    p = build_particles(Scene(dx=dx, bodies=[BodySpec(shape=ShapeSpec(size=size.tolist()), center=center.tolist())]))
+    lo, hi = p.x.min(0), p.x.max(0)
+    counts = np.round(size / (dx / 2)).astype(int)  # 8 particles per cell: spacing about dx / 2
+    spacing = size / counts
+    np.testing.assert_allclose(hi - lo + spacing, size, rtol=1e-9)
+    np.testing.assert_allclose((lo + hi) / 2, center, atol=1e-12)
+    assert p.n == counts.prod()
+
+
+def test_a_body_resting_on_terrain_has_its_face_on_the_surface():
+    scene = Scene(dx=1 / 48, terrain=TerrainSpec(kind="flat", height=0.13),
+                  bodies=[BodySpec(shape=ShapeSpec(size=[0.2, 0.08, 0.08]), center=[0.5, 0.0, 0.5], rest_on_terrain=True)])
+    y = build_particles(scene).x[:, 1]
+    assert y.min() - (y.max() - y.min()) / (2 * (np.unique(y.round(9)).size - 1)) == pytest.approx(0.13, abs=1e-12)
+    assert (y.max() + y.min()) / 2 == pytest.approx(0.13 + 0.04, abs=1e-12)
+
+
 def test_bad_scene_values():
     with pytest.raises(SceneError, match=r"cfl = 1\.5"):
         validate_scene(Scene(cfl=1.5, bodies=[BodySpec()]))
@@ -93,7 +114,8 @@ def test_shapes_sample_their_volume():
                            np.pi * 0.05 ** 2 * 0.1 + 4 / 3 * np.pi * 0.05 ** 3)]:
         p = build_particles(Scene(dx=dx, bodies=[BodySpec(shape=shape, center=[0.5, 0.5, 0.5], particles_per_cell=27)]))
         assert p.volume.sum() == pytest.approx(volume, rel=1e-12), shape.kind
-        lattice_volume = p.n * (dx / 3) ** 3  # and the lattice really fills the shape
+        cell = [np.diff(np.unique(p.x[:, a].round(12))).min() for a in range(3)]  # about dx / 3 each
+        lattice_volume = p.n * np.prod(cell)  # and the lattice really fills the shape
         assert lattice_volume == pytest.approx(volume, rel=0.06), shape.kind
 
 
