@@ -59,7 +59,7 @@ def lattice(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
 
 def fitted_lattice(lo: np.ndarray, hi: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """Cell centres of a lattice that spans [lo, hi] exactly, each axis split into round(extent /
-    spacing) equal cells (the same count `lattice` gives), and the cells' edges. A body then has
+    spacing) equal cells (the same count `lattice` gives), and a cell's edge lengths. A body then has
     its shape's extents at every dx instead of snapping to the spacing: on a plain lattice a box
     0.08 high sampled 0.0833 high at dx 1/48 and 0.078 at dx 1/32 (measured), so the muscles'
     lever arms, the mass's height and the contact patch changed with the resolution."""
