@@ -1,16 +1,22 @@
-"""Why a gait's distance does not converge with resolution (issue 22): the fixed sine gait of
-`codesign bench accuracy`'s robot_ground problem on floors of several frictions, at several dx and
-CFL numbers, and the same muscled box floating free (no gravity, no terrain), whose shape should
-converge. Prints JSON lines (and appends them to --out); docs/contact.md reads them.
+"""Does a gait's distance converge with resolution (issue 22)? The fixed gait of `codesign bench
+accuracy`'s robot_ground problem on floors of several frictions, at several dx and CFL numbers;
+the same muscled box floating free (no gravity, no terrain), whose shape should converge; and
+whether random gaits rank the same at the quality presets (Spearman's rho of their distances).
+Prints JSON lines (and appends them to --out); docs/contact.md reads them.
 
     python benchmarks/locomotion_convergence.py ground --arch cuda --out records.jsonl
     python benchmarks/locomotion_convergence.py floating
+    python benchmarks/locomotion_convergence.py ranking --gaits 5
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
+
+import numpy as np
+from scipy.stats import spearmanr
 
 from codesign_mpm import BodySpec, MaterialSpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec, build_particles
 from codesign_mpm.accuracy import gait
@@ -22,8 +28,8 @@ FRAMES = 125  # 1 s of 8 ms control steps
 RESOLUTIONS = (32, 48, 64, 96, 128)  # 1 / dx
 
 
-def ground(dx: float, cfl: float, friction: float, arch: str) -> dict:
-    """Distance along x after 1 s (and after 0.5 s) of the gait, on robot_ground's setup."""
+def ground(dx: float, cfl: float, friction: float, arch: str, actions=gait) -> dict:
+    """Distance along x after 1 s (and after 0.5 s) of a gait (`actions(frame, k)`), on robot_ground's setup."""
     preset = PRESETS["ground"]
     config = PRESET_CONFIGS["ground"](
         dx=dx, cfl=cfl, horizon=FRAMES, arch=arch, terrain=TerrainConfig(height=0.13, friction=friction),
@@ -31,7 +37,7 @@ def ground(dx: float, cfl: float, friction: float, arch: str) -> dict:
     env = LocomotionEnv(config, preset)
     com0 = env.reset()[:3]
     t0 = time.perf_counter()
-    xs = [float(env.step(gait(f, env.action_dim)).info["com"][0] - com0[0]) for f in range(FRAMES)]
+    xs = [float(env.step(actions(f, env.action_dim)).info["com"][0] - com0[0]) for f in range(FRAMES)]
     particles = env.sim.n
     env.close()
     return dict(distance=xs[-1], half=xs[FRAMES // 2], particles=particles, wall_s=time.perf_counter() - t0)
@@ -55,25 +61,53 @@ def floating(dx: float, cfl: float, arch: str) -> dict:
     return dict(std_x=[s[0] for s in spread], std_y=[s[1] for s in spread])
 
 
+def random_gait(seed: int):
+    """A sine gait at the action bound with a random frequency (2 to 6 Hz) and random phases."""
+    rng = np.random.default_rng(seed)
+    hz, phases = rng.uniform(2.0, 6.0), rng.uniform(0.0, 2 * math.pi, 4)
+    return lambda frame, k: 0.3 * np.sin(2 * math.pi * hz * frame * 8e-3 + phases)[:k]
+
+
+def ranking(gaits: int, arch: str) -> list[dict]:
+    """Each random gait's distance at the draft, default and paper presets, and Spearman's rho
+    between the presets' rankings."""
+    from codesign_mpm.quality import QUALITY
+
+    distances = {name: [ground(QUALITY[name].dx, QUALITY[name].cfl, 0.5, arch, random_gait(seed))["distance"]
+                        for seed in range(gaits)] for name in ("draft", "default", "paper")}
+    records = [dict(preset=name, distances=d) for name, d in distances.items()]
+    for a, b in (("draft", "paper"), ("default", "paper"), ("draft", "default")):
+        records.append(dict(spearman=f"{a}-{b}", rho=float(spearmanr(distances[a], distances[b]).statistic)))
+    return records
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("study", choices=["ground", "floating"])
+    parser.add_argument("study", choices=["ground", "floating", "ranking"])
+    parser.add_argument("--gaits", type=int, default=5, help="ranking: random gaits to rank")
     parser.add_argument("--arch", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--frictions", type=float, nargs="+", default=[0.0, 0.5, 5.0])
     parser.add_argument("--cfls", type=float, nargs="+", default=[0.4, 0.1])
     parser.add_argument("--out", default=None, help="also append the records to this file")
     args = parser.parse_args()
+    def emit(record: dict) -> None:
+        line = json.dumps(dict(study=args.study, **record))
+        print(line, flush=True)
+        if args.out:
+            with open(args.out, "a") as f:
+                f.write(line + "\n")
+
+    if args.study == "ranking":
+        for record in ranking(args.gaits, args.arch):
+            emit(record)
+        return
     runs = ([dict(friction=mu, cfl=cfl) for mu in args.frictions for cfl in args.cfls] if args.study == "ground"
             else [dict(cfl=cfl) for cfl in args.cfls])
     for run in runs:
         for n in RESOLUTIONS:
             measured = (ground(1 / n, run["cfl"], run["friction"], args.arch) if args.study == "ground"
                         else floating(1 / n, run["cfl"], args.arch))
-            record = json.dumps(dict(study=args.study, dx=f"1/{n}", **run, **measured))
-            print(record, flush=True)
-            if args.out:
-                with open(args.out, "a") as f:
-                    f.write(record + "\n")
+            emit(dict(dx=f"1/{n}", **run, **measured))
 
 
 if __name__ == "__main__":

@@ -44,7 +44,7 @@ def test_quick_accuracy_of_the_bar_writes_a_report(tmp_path):
 
 @pytest.mark.slow
 def test_quick_gradient_accuracy_matches_finite_differences_and_checkpoints_change_nothing():
-    grad = run_accuracy_bench(["gradient"], "quick", lambda r: None)
+    grad = run_accuracy_bench(["gradient"], "quick", lambda r: None, isolate=False)  # the bar's test runs isolated
     check_accuracy_rows(grad, ["gradient"])
     assert all(r["fd_error_actions"] < 1e-3 and r["fd_error_stiffness"] < 1e-3 for r in grad
                if r["dtype"] == "float64")  # float64 gradients match float64 finite differences
@@ -78,7 +78,7 @@ def check_stability_rows(rows):
 
 def test_quick_stability_of_two_cases_writes_a_report(tmp_path):
     cases = ["near_inverted", "leaving_domain"]
-    rows = run_stability_bench(cases, "quick", lambda r: None)
+    rows = run_stability_bench(cases, "quick", lambda r: None, isolate=False)
     assert [r["case"] for r in rows] == cases
     check_stability_rows(rows)
     text = write_stability_report(rows, tmp_path).read_text()

@@ -29,22 +29,17 @@ def test_a_closed_simulators_storage_serves_the_next_of_its_layout():
 
 def test_freed_storages_are_bounded_by_recycling_an_idle_program(monkeypatch):
     monkeypatch.setattr(engine, "MAX_FREE_STORAGES", 0)  # every closed storage is freed at once
-    monkeypatch.setattr(engine, "MAX_DEAD_STORAGES", 1)
+    monkeypatch.setattr(engine, "MAX_DEAD_STORAGES", 0)  # and one freed storage is one too many
     generation = runtime.generation
-    reference = None
-    for layout in (1, 2, 3):  # the third simulator finds two freed storages and no live one
-        sim, x = fall(layout)
-        reference = x if reference is None else reference
-        np.testing.assert_array_equal(x, reference)
-        sim.close()
+    first, x_first = fall(1)
+    first.close()
+    second, x_second = fall(2)  # finds a freed storage and no live simulator: a fresh program
     recycled = runtime.generation
-    assert recycled > generation and len(engine._freed) == 1  # only the third's, of the new program
-    live, _ = fall(4)  # a live simulator holds its program: no recycling under it
-    for layout in (5, 6):
-        sim, _ = fall(layout)
-        sim.close()
-    Simulator(SCENE, build_particles(SCENE), max_frames=7).close()  # finds three freed storages
-    assert runtime.generation == recycled and len(engine._freed) == 4
-    live.step(frames=1)
-    assert np.isfinite(live.particles_state()[0]).all()
-    live.close()
+    assert recycled > generation and engine._freed == []
+    np.testing.assert_array_equal(x_second, x_first)
+    Simulator(SCENE, build_particles(SCENE), max_frames=3).close()  # second is alive: no recycling
+    Simulator(SCENE, build_particles(SCENE), max_frames=4).close()
+    assert runtime.generation == recycled and len(engine._freed) == 2
+    second.step(frames=1)  # and it still runs
+    assert np.isfinite(second.particles_state()[0]).all()
+    second.close()
