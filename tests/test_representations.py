@@ -14,8 +14,9 @@ from codesign.geometry import grid_partition
 from codesign.interfaces import DesignSpace
 from codesign.plugins import get_registry
 from codesign.schema import convert
-from codesign_designs.primitives import primitive_muscle
-from codesign_designs.rotations import facing_heading, fiber_rotations, special_procrustes
+from codesign_designs.primitives import group_centroids, muscle_correspondence, primitive_muscle
+from codesign_designs.rotations import (average_rotations, facing, facing_heading, fiber_rotations, principal_axes,
+                                       special_procrustes)
 from codesign_designs.wasserstein import debiased_barycenter
 
 NEW = ["voxel", "implicit", "diff_cppn", "sdf_lerp", "wasserstein"]
@@ -71,8 +72,9 @@ def test_fields_have_the_design_space_shapes_and_ranges(name):
     torch.testing.assert_close(design.fiber.norm(dim=1), torch.ones(n))
 
 
-@pytest.mark.parametrize("name, k", [(name, k) for name in NEW for k in (1, 4)])
-def test_parameter_counts_are_the_documented_ones(name, k):
+@pytest.mark.parametrize("name, k", [(name, k) for name in NEW
+                                     for k in ((4, 6) if name in ("sdf_lerp", "wasserstein") else (1, 4))])
+def test_parameter_counts_are_the_documented_ones(name, k):  # a blend's primitives need >= 4 actuators
     representation = build(name, box_space(k))
     count = sum(t.numel() for t in representation.parameters())
     expected = {"voxel": 8 * 3 * 3 * (2 + k), "implicit": 1378 + 33 * k, "diff_cppn": 1982 + 21 * k,
@@ -136,8 +138,10 @@ def test_sdf_lerp_with_a_one_hot_weight_is_that_primitive(primitive):
     assert inside.sum() > 200
     np.testing.assert_array_equal(design.occupancy.detach().numpy() > 0.5, inside)
     np.testing.assert_allclose(design.stiffness.detach().numpy(), E0 * labels.stiffness)
-    np.testing.assert_allclose(design.muscle.detach().numpy(), primitive_muscle(labels.groups, 4))
-    np.testing.assert_allclose(design.fiber.detach().numpy(), facing_heading(labels.fibers), atol=1e-9)
+    expected = primitive_muscle(labels.groups, representation.actuators[primitive], 4)
+    np.testing.assert_allclose(design.muscle.detach().numpy(), expected)
+    alignment = (design.fiber.detach().numpy() * labels.fibers).sum(1)  # the same fibre, up to its sign
+    np.testing.assert_allclose(np.abs(alignment), 1.0, atol=1e-9)
     lo, hi = body.bounds
     assert lo[1] == pytest.approx(LO[1]) and (lo + hi)[[0, 2]] / 2 == pytest.approx((LO + HI)[[0, 2]] / 2)
 
@@ -172,6 +176,48 @@ def test_fibres_are_rotations_of_the_heading_that_face_it():
     np.testing.assert_allclose(rotations @ np.array([1.0, 0, 0]), facing_heading(fibers), atol=1e-12)
     np.testing.assert_allclose(rotations @ np.swapaxes(rotations, 1, 2), np.tile(np.eye(3), (50, 1, 1)), atol=1e-12)
     assert (facing_heading(fibers)[:, 0] >= 0).all()
+
+
+def test_muscle_groups_correspond_by_place_across_primitives():
+    """A second primitive whose groups are the first's, numbered otherwise, drives the same actuators
+    with the same parts; a group with no points takes what is left; more groups than actuators is
+    a recipe error naming the primitive."""
+    points = np.random.default_rng(4).uniform(size=(400, 3))
+    quarter = np.minimum((points[:, 0] * 4).astype(int), 3)  # four parts front to back
+    renumbered = np.array([2, 0, 3, 1])
+    first = group_centroids(points, quarter, 4)
+    second = group_centroids(points, renumbered[quarter], 4)
+    sparse = group_centroids(points, np.where(quarter == 3, -1, quarter), 5)  # group 3 empty, group 4 never used
+    actuators = muscle_correspondence([first, second, sparse], 6)
+    np.testing.assert_array_equal(actuators[0], [0, 1, 2, 3])
+    np.testing.assert_array_equal(actuators[1][renumbered], [0, 1, 2, 3])  # part q drives actuator q in both
+    np.testing.assert_array_equal(actuators[2][:3], [0, 1, 2])
+    assert set(actuators[2][3:]) <= {3, 4, 5} and len(set(actuators[2])) == 5  # the empty ones take what is left
+    with pytest.raises(RecipeError, match=r"primitives\[0\]: 'caterpillar' has 6 muscle groups, more than the robot's "
+                                          r"4 actuators"):
+        build("sdf_lerp", primitives=["caterpillar", "fish"])
+
+
+def test_fibres_either_side_of_the_yz_plane_average_to_their_common_axis():
+    """Two leg fibres 2.3 degrees apart across the yz-plane: facing +x they pointed opposite ways and
+    averaged to +x; blended about their principal axis they average to y, whatever their signs."""
+    half = np.radians(1.15)
+    for signs in ([1, 1], [1, -1], [-1, 1]):
+        fibers = np.array([[[np.sin(half), np.cos(half), 0.0], [-np.sin(half), np.cos(half), 0.0]]])
+        fibers = fibers * np.array(signs)[None, :, None]
+        axis = principal_axes(fibers)
+        np.testing.assert_allclose(axis, [[0.0, 1.0, 0.0]], atol=1e-12)
+        rotations = torch.tensor(fiber_rotations(fibers, axis[:, None, :]))
+        for w in (0.5, 0.2):
+            blended = average_rotations(rotations, torch.tensor([w, 1 - w]))[0] @ torch.tensor(axis[0])
+            angle = np.degrees(np.arctan2(blended[0].item(), blended[1].item()))
+            chord = np.degrees(np.arctan2((2 * w - 1) * np.sin(half), np.cos(half)))  # the two rotations' chord
+            assert angle == pytest.approx(chord, abs=1e-9)  # between the two, by weight
+    fibers = np.random.default_rng(3).normal(size=(20, 3, 3))
+    np.testing.assert_allclose(principal_axes(fibers), principal_axes(-fibers), atol=1e-12)
+    axes = principal_axes(fibers)[:, None, :]
+    np.testing.assert_allclose(fiber_rotations(fibers, axes) @ principal_axes(fibers)[:, None, :, None],
+                               facing(fibers, axes)[..., None], atol=1e-12)
 
 
 @pytest.mark.parametrize("primitive", [0, 1, 4])

@@ -1,9 +1,13 @@
 """Fibres as rotations, and their weighted average by the special orthogonal Procrustes projection.
 
-A fibre f is stored as the smallest rotation R that takes the heading e_x to f (SDF-Lerp of the
-SoftZoo appendix, after Bregier 2021). Muscle stress is even in f, so fibres are first turned
-into the half space facing +x: the average of f and -f is then never asked for. The average
-of rotations R_i with weights w_i is the rotation nearest sum_i w_i R_i in Frobenius norm.
+A fibre f is stored as the smallest rotation R that takes a reference direction r to f (SDF-Lerp
+of the SoftZoo appendix, after Bregier 2021, with r = the heading e_x). Muscle stress is even in
+f, so each fibre is first given the sign that faces r: the average of f and -f is then never
+asked for. With r = e_x, two fibres a few degrees apart on either side of the yz-plane faced
+opposite ways and averaged to +x; blends therefore take, per point, r = the principal axis of
+the fibres being blended (`principal_axes`, sign-invariant), fixed at setup so the weights'
+gradients are untouched. The average of rotations R_i with weights w_i is the rotation nearest
+sum_i w_i R_i in Frobenius norm.
 """
 
 from __future__ import annotations
@@ -22,15 +26,32 @@ def facing_heading(fibers: np.ndarray) -> np.ndarray:
     return np.where(key[..., None] < 0, -f, f)
 
 
-def fiber_rotations(fibers: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) the smallest rotation taking e_x to each fibre (after `facing_heading`).
+def facing(fibers: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Unit fibres with the sign that faces `reference` (a fibre perpendicular to it: `facing_heading`)."""
+    f = facing_heading(fibers)
+    dot = (f * reference).sum(-1, keepdims=True)
+    return np.where(dot < -1e-12, -f, f)
 
-    Rodrigues' formula R = I + [v]x + [v]x^2 / (1 + c) with v = e_x x f, c = e_x . f >= 0,
+
+def principal_axes(fibers: np.ndarray) -> np.ndarray:
+    """(..., 3) the principal axis of each (..., P, 3) set of fibres: the top eigenvector of
+    sum_p f_p f_p^T, the same for f_p and -f_p (signed by `facing_heading`)."""
+    f = facing_heading(fibers)
+    _, vectors = np.linalg.eigh(np.einsum("...pi,...pj->...ij", f, f))
+    return facing_heading(vectors[..., :, -1])
+
+
+def fiber_rotations(fibers: np.ndarray, reference: np.ndarray = HEADING) -> np.ndarray:
+    """(..., 3, 3) the smallest rotation taking the unit `reference` (broadcast against the fibres)
+    to each fibre, the fibre signed to face it (`facing`).
+
+    Rodrigues' formula R = I + [v]x + [v]x^2 / (1 + c) with v = r x f, c = r . f >= 0,
     so it never divides by less than 1.
     """
-    f = facing_heading(fibers)
-    v = np.cross(HEADING, f)
-    c = f[..., 0]
+    r = np.broadcast_to(reference, np.shape(fibers))
+    f = facing(fibers, r)
+    v = np.cross(r, f)
+    c = (r * f).sum(-1)
     vx = np.zeros(f.shape[:-1] + (3, 3))
     vx[..., 0, 1], vx[..., 0, 2], vx[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
     vx = vx - np.swapaxes(vx, -1, -2)
