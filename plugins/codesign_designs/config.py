@@ -98,9 +98,10 @@ class ImplicitConfig:
 class DiffCPPNConfig:
     hidden_layers: int = field(default=3, metadata={"ge": 1, "help": "layers of graph nodes (the paper: 3)"})
     nodes: int = field(default=20, metadata={"ge": 1, "help": "nodes per layer (the paper: 20)"})
-    activations: list[str] = field(default_factory=lambda: ["sin", "sigmoid", "gaussian", "abs", "tanh"], metadata={
+    activations: list[str] = field(default_factory=lambda: ["sin", "sigmoid"], metadata={
         "choices": ACTIVATIONS, "min_len": 1,
-        "help": "node j of layer l uses activations[(j + l) % len]: a fixed, mixed topology"})
+        "help": "node j of layer l uses activations[(j + l) % len]: a fixed, mixed topology (default: SoftZoo's "
+                "sin and sigmoid)"})
     connection_density: float = field(default=0.5, metadata={
         "gt": 0, "le": 1, "help": "fraction of connections that start switched on (gate logit +gate_logit)"})
     gate_logit: float = field(default=2.0, metadata={
