@@ -16,17 +16,19 @@ class ParticleConfig:
         default=1.5, metadata={"gt": 0, "help": "stiffness at logit +inf; the midpoint is the stiffness at logit 0"}
     )
     muscle_init: str = field(
-        default="grid",
+        default="environment",
         metadata={"choices": ["grid", "environment", "random"],
-                  "help": "grid: a near-cubic block grid of K muscles; environment: the environment's own muscles "
-                          "(an animal's groups; a box's grid of robot.muscle_groups); random: N(0, 1)"},
+                  "help": "environment: the environment's own muscles (an animal's groups; a box's grid of "
+                          "robot.muscle_groups), as the paper; grid: a near-cubic block grid of K muscles; "
+                          "random: N(0, 1)"},
     )
     muscle_sharpness: float = field(
         default=5.0, metadata={"ge": 0, "help": "grid, environment init: logit of a particle's own muscle (others 0)"}
     )
-    fiber: list[float] = field(
-        default_factory=lambda: [1.0, 0.0, 0.0],
-        metadata={"min_len": 3, "help": "fixed muscle direction (the canonical heading), normalised"},
+    fiber: Optional[list[float]] = field(
+        default=None,
+        metadata={"min_len": 3, "help": "fixed muscle direction, normalised; null: the environment's own fibres "
+                                        "(an animal's, +x for a box)"},
     )
 
 

@@ -5,10 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from codesign.errors import RecipeError
 from codesign.geometry import grid_partition
 from codesign.interfaces import DesignFields, DesignSpace, Representation
-from codesign_designs.common import check_stiffness_ratios, environment_muscle, near_cubic_grid
+from codesign_designs.common import check_fiber, check_stiffness_ratios, environment_muscle, fixed_fibers, near_cubic_grid
 from codesign_designs.config import ParticleConfig
 
 
@@ -16,13 +15,13 @@ class ParticleRepresentation(Representation):
     """occupancy = sigmoid(g_p); stiffness = E0 (lo + (hi - lo) sigmoid(s_p)); muscle = softmax(r_p).
 
     Every base particle has its own logits, so this is the most expressive and least smooth
-    representation; the fibre direction is fixed. All three logit tensors require grad.
+    representation; the fibres are fixed (the environment's own unless `fiber` is given). All three
+    logit tensors require grad.
     """
 
     def __init__(self, config: ParticleConfig) -> None:
         check_stiffness_ratios(config)
-        if len(config.fiber) != 3 or not np.linalg.norm(config.fiber) > 0:
-            raise RecipeError(f"invalid recipe: representation.fiber: {config.fiber!r} is not a non-zero 3-vector")
+        check_fiber(config.fiber)
         self.config = config
         self.geometry: torch.Tensor | None = None
         self.stiffness: torch.Tensor | None = None
@@ -42,8 +41,7 @@ class ParticleRepresentation(Representation):
         self.geometry = torch.full((n,), cfg.init_occupancy_logit, dtype=dtype, requires_grad=True)
         self.stiffness = torch.zeros(n, dtype=dtype, requires_grad=True)
         self.muscle = torch.tensor(muscle, dtype=dtype, requires_grad=True)
-        fiber = torch.tensor(cfg.fiber, dtype=dtype)
-        self._fiber = (fiber / fiber.norm()).expand(n, 3)
+        self._fiber = torch.tensor(fixed_fibers(space, cfg.fiber), dtype=dtype)
         self._default_stiffness = space.default_stiffness
 
     def parameters(self) -> list[torch.Tensor]:
