@@ -78,3 +78,25 @@ def test_a_non_watertight_mesh_is_refused_by_the_command(tmp_path, cli):
     mesh.export(tmp_path / "open.stl")
     code, _, stderr = cli("annotate", str(tmp_path / "open.stl"), "--groups", "2")
     assert code == 1 and "open.stl: the mesh is not watertight" in stderr
+
+
+def test_symmetric_annotation_gives_paired_limbs_mirrored_muscles(tmp_path):
+    """Two legs splayed 30 degrees to either side: folded across the sagittal plane they are one
+    cluster, split into a left and a right muscle whose samples and fibres are mirror images."""
+    legs = []
+    for side in (-1, 1):
+        leg = trimesh.creation.box(extents=[0.3, 1.2, 0.3])
+        leg.apply_transform(trimesh.transformations.rotation_matrix(np.radians(-30.0 * side), [1, 0, 0]))
+        legs.append(leg.apply_translation([0.0, 0.0, 0.6 * side]))
+    path = tmp_path / "legs.stl"
+    trimesh.util.concatenate(legs).export(path)
+    result = annotate(load_body(path), groups=1, symmetric=True, resolution=32)
+    assert result.group_names == ["k-means group 0 left", "k-means group 0 right"]
+    left, right = (result.points[result.groups == g] for g in (0, 1))
+    mid = (result.points[:, 2].min() + result.points[:, 2].max()) / 2
+    assert (left[:, 2] < mid).all() and (right[:, 2] >= mid).all() and len(left) == len(right)
+    np.testing.assert_allclose(left.mean(0) * [1, 1, -1] + [0, 0, 2 * mid], right.mean(0), atol=1e-9)
+    leg_axis = np.array([0.0, np.cos(np.radians(30.0)), -np.sin(np.radians(30.0))])  # the right leg leans in
+    assert abs(result.axes[1] @ leg_axis) > 0.99 and abs(result.axes[0] @ (leg_axis * [1, 1, -1])) > 0.99
+    plain = annotate(load_body(path), groups=1, resolution=32)
+    assert plain.group_names == ["k-means group 0"]  # without it the two legs share one muscle

@@ -5,7 +5,10 @@ the samples into K groups by k-means, takes each group's principal axis as its f
 the user's merges and passive groups, and writes an annotated ``.npz`` that a recipe can use
 (``robot.body: file``) plus, optionally, a picture coloured by group. k-means groups are
 numbered by their centre along x, from the tail (-x) to the head (+x), so a first run's
-picture tells which numbers to merge or make passive in a second run.
+picture tells which numbers to merge or make passive in a second run. ``--symmetric`` clusters
+the body folded across its sagittal plane (the mid-plane of z, heading +x and up +y) and splits
+every muscle into a left (z below the plane) and a right one, mirror images with mirrored
+fibres: paired limbs get a muscle each.
 """
 
 from __future__ import annotations
@@ -77,9 +80,11 @@ def principal_axis(points: np.ndarray) -> np.ndarray:
 
 
 def annotate(body: Body, groups: int, merge: list[list[int]] = (), passive: list[int] = (),
-             resolution: int = 48, seed: int = 0) -> Annotation:
+             resolution: int = 48, seed: int = 0, symmetric: bool = False) -> Annotation:
     """Sample `body` with `resolution` lattice points along its longest side, cluster the samples
-    into `groups` by k-means, merge and passivate groups, and give each muscle its PCA axis."""
+    into `groups` by k-means, merge and passivate groups, and give each muscle its PCA axis;
+    `symmetric`: cluster the body folded across its sagittal plane and split each muscle into
+    a left and a right one."""
     from sklearn.cluster import KMeans
 
     if groups < 1:
@@ -91,17 +96,29 @@ def annotate(body: Body, groups: int, merge: list[list[int]] = (), passive: list
         raise AnnotationError(f"--groups {groups}: the body holds only {len(points)} samples at --resolution "
                               f"{resolution}; raise the resolution or ask for fewer groups")
     plan = _plan(groups, [list(m) for m in merge], list(passive))
-    kmeans = KMeans(n_clusters=groups, n_init=10, random_state=seed).fit(points)
+    mid = (lo[2] + hi[2]) / 2
+    right = points[:, 2] >= mid
+    folded = points.copy()  # the left half mirrored onto the right: clusters come in mirror pairs
+    folded[:, 2] = mid + np.abs(points[:, 2] - mid)
+    kmeans = KMeans(n_clusters=groups, n_init=10, random_state=seed).fit(folded if symmetric else points)
     order = np.lexsort(kmeans.cluster_centers_.T[::-1])  # by centre x, then y, then z
     clusters = np.argsort(order)[kmeans.labels_]
     labels = np.full(len(points), -1)
     fibers = np.tile([1.0, 0.0, 0.0], (len(points), 1))
     names = []
-    for muscle, members in enumerate(plan):
+    for members in plan:
         mine = np.isin(clusters, members)
-        labels[mine] = muscle
-        fibers[mine] = principal_axis(points[mine])
-        names.append(f"k-means group{'s' if len(members) > 1 else ''} {'+'.join(map(str, members))}")
+        name = f"k-means group{'s' if len(members) > 1 else ''} {'+'.join(map(str, members))}"
+        if not symmetric:
+            labels[mine] = len(names)
+            fibers[mine] = principal_axis(points[mine])
+            names.append(name)
+            continue
+        axis = principal_axis(folded[mine])  # the right side's; the left's is its mirror image
+        for side, on_side, fiber in (("left", ~right, axis * [1.0, 1.0, -1.0]), ("right", right, axis)):
+            labels[mine & on_side] = len(names)
+            fibers[mine & on_side] = facing_heading(fiber)
+            names.append(f"{name} {side}")
     return Annotation(points, labels, fibers, clusters, spacing, names)
 
 

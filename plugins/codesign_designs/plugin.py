@@ -62,6 +62,9 @@ def codesign_cli(app: typer.Typer) -> None:
         png: Optional[Path] = typer.Option(None, "--png", help="Also draw the groups to this PNG."),
         resolution: int = typer.Option(48, "--resolution", min=4, help="Samples along the longest side."),
         seed: int = typer.Option(0, "--seed", help="k-means seed."),
+        symmetric: bool = typer.Option(False, "--symmetric", help="Cluster the body folded across its sagittal "
+                                                                  "plane (z) and split every muscle into a left "
+                                                                  "and a right one (paired limbs)."),
     ) -> None:
         """Label a body's muscles: k-means groups of its solid, each group's PCA axis as its fibre.
 
@@ -74,7 +77,7 @@ def codesign_cli(app: typer.Typer) -> None:
         from codesign_designs.annotate import annotate as label, render_annotation, save_annotation
 
         result = label(get_body(body_file), groups, [_indices("--merge", m) for m in merge],
-                       [g for p in passive for g in _indices("--passive", p)], resolution, seed)
+                       [g for p in passive for g in _indices("--passive", p)], resolution, seed, symmetric)
         target = out or Path(Path(body_file).stem + ".annotated.npz")
         save_annotation(result, target)
         for muscle, (name, axis) in enumerate(zip(result.group_names, result.axes)):
