@@ -96,6 +96,28 @@ class Body(ABC):
         scale = float(np.min(np.asarray(size, dtype=float) / (hi - lo)))
         return self.transformed(scale, np.asarray(center, dtype=float) - scale * (lo + hi) / 2)
 
+    def signed_distance(self, points: np.ndarray, cell: float) -> np.ndarray:
+        """(N,) the true signed distance of (N, 3) points to the body (negative inside), to about a
+        `cell`: a Euclidean distance transform of its occupancy on a lattice of `cell` over the
+        points and the body, read off trilinearly, signed by `contains`. `sdf` is only a bound
+        away from the surface (an ellipsoid's is 2 to 3 times too deep in a slender fish, a
+        sampled body's at most a sample spacing deep), which biases a blend of distances toward
+        whichever body's bound is deeper."""
+        from scipy.ndimage import distance_transform_edt, map_coordinates
+
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        lo = np.minimum(p.min(0), self.bounds[0]) - 2 * cell
+        hi = np.maximum(p.max(0), self.bounds[1]) + 2 * cell
+        counts = np.ceil((hi - lo) / cell).astype(int)
+        axes = [lo[a] + (np.arange(counts[a]) + 0.5) * cell for a in range(3)]
+        centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        inside = self.contains(centres).reshape(counts)
+        # distance from a cell centre to the nearest centre across the surface, less half a cell
+        depth = np.where(inside, distance_transform_edt(inside), distance_transform_edt(~inside)) * cell - cell / 2
+        magnitude = map_coordinates(depth, ((p - lo) / cell - 0.5).T, order=1, mode="nearest")
+        magnitude = np.maximum(magnitude, 1e-9 * cell)  # strictly signed, as `contains` says
+        return np.where(self.contains(p), -magnitude, magnitude)
+
     def sample(self, spacing: float) -> np.ndarray:
         """(M, 3) points inside the body on a lattice of `spacing` (cell centres over its bounds)."""
         points = lattice(*self.bounds, spacing)

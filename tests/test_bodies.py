@@ -140,3 +140,26 @@ def test_the_body_library_imports_nothing_heavy():
             "print([m for m in ('trimesh', 'scipy', 'sklearn', 'torch', 'taichi') if m in sys.modules])")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "[]"
+
+
+def test_signed_distances_are_distances_to_half_a_cell():
+    """A ball and a box against their analytic distances, inside and out; no point of a slender fish
+    lies deeper than half its thickness (its ellipsoid bound says much deeper)."""
+    import trimesh
+
+    from codesign.bodies import MeshBody, Part, PartsBody, ellipsoid
+
+    cell, rng = 0.01, np.random.default_rng(0)
+    ball = PartsBody("ball", [Part(ellipsoid([0.0, 0.0, 0.0], [0.2, 0.2, 0.2]))], ())
+    points = rng.uniform(-0.3, 0.3, (2000, 3))
+    assert np.abs(ball.signed_distance(points, cell) - (np.linalg.norm(points, axis=1) - 0.2)).max() < 0.6 * cell
+    box = MeshBody("box", trimesh.creation.box(extents=[0.4, 0.16, 0.16]))
+    points = rng.uniform([-0.25, -0.1, -0.1], [0.25, 0.1, 0.1], (2000, 3))
+    q = np.abs(points) - [0.2, 0.08, 0.08]
+    exact = np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(1), 0.0)
+    assert np.abs(box.signed_distance(points, cell) - exact).max() < 0.6 * cell
+    fish = library_body("fish_slender")
+    inside = fish.sample(cell)
+    half_thickness = (fish.bounds[1] - fish.bounds[0])[2] / 2  # 0.07: the body is thinnest across z
+    assert fish.signed_distance(inside, cell).min() >= -half_thickness - 0.6 * cell  # no point deeper than that
+    assert fish.sdf(inside).min() < -1.3 * half_thickness
