@@ -338,3 +338,32 @@ def test_bad_configs_are_recipe_errors(name, config, message):
     entry = get_registry().get("representation", name)
     with pytest.raises(RecipeError, match=message):
         entry.load_factory()(entry.load_config()(**config))
+
+
+@pytest.mark.parametrize("name, config", [("particle", dict(muscle_init="random")), ("voxel", dict(muscle_init="random")),
+                                          ("implicit", {}), ("diff_cppn", {})])
+def test_a_symmetric_design_is_its_own_mirror_image_muscles_included(name, config):
+    space = box_space()
+    space.muscle = np.eye(4)[grid_partition(space.points, (2, 1, 2))]  # front/back x left/right
+    representation = build(name, space, symmetric=True, **config)
+    design = representation()
+    mirror = representation._mirror
+    assert sorted(mirror.actuator.tolist()) == [0, 1, 2, 3] and (mirror.actuator != np.arange(4)).all()
+    np.testing.assert_array_equal(mirror.actuator[mirror.actuator], np.arange(4))  # left <-> right
+    p = mirror.partner
+    assert (p != np.arange(len(p))).mean() > 0.9
+    for field in ("occupancy", "stiffness"):
+        value = getattr(design, field).detach().numpy()
+        np.testing.assert_allclose(value, value[p], rtol=1e-12)
+    muscle = design.muscle.detach().numpy()
+    np.testing.assert_allclose(muscle, muscle[p][:, mirror.actuator], rtol=1e-12)
+    (design.occupancy.sum() + design.stiffness.sum() / E0 + (design.muscle[:, 0] * torch.tensor(space.points[:, 2])).sum()).backward()
+    assert all(t.grad is not None and t.grad.abs().sum() > 0 for t in representation.parameters())
+
+
+def test_a_symmetric_design_needs_a_bilateral_workspace():
+    space = box_space()
+    space.points = space.points[space.points[:, 2] < 0.06]  # a cut-off side
+    space.bounds = np.stack([LO, HI])
+    with pytest.raises(RecipeError, match="representation.symmetric: the design space is not bilateral"):
+        build("voxel", space, symmetric=True)

@@ -60,6 +60,41 @@ def environment_muscle(space: DesignSpace) -> np.ndarray:
     return np.eye(k)[grid_partition(space.points, near_cubic_grid(k))]
 
 
+class Mirror:
+    """The design space's mirror image across its sagittal plane (the workspace's mid-plane of z):
+    each point's partner and each actuator's (the one whose muscle holds the mirror images of its
+    points: itself for a box's grid without a z split, the other side's for an animal's paired
+    limbs). Applied to a design's fields it averages every point with its partner, so designs and
+    their gradients are bilateral (the `symmetric` option)."""
+
+    def __init__(self, space: DesignSpace) -> None:
+        from scipy.spatial import cKDTree
+
+        lo, hi = space.box()
+        mirrored = space.points * np.array([1.0, 1.0, -1.0]) + np.array([0.0, 0.0, lo[2] + hi[2]])
+        tree = cKDTree(space.points)
+        gap, self.partner = tree.query(mirrored)
+        spacing = float(np.median(tree.query(space.points, k=2)[0][:, 1])) if len(space.points) > 1 else 1.0
+        if gap.max() > 0.5 * spacing:
+            raise RecipeError("invalid recipe: representation.symmetric: the design space is not bilateral: the mirror "
+                              f"image of a point lies {gap.max():.3g} from the nearest point (spacing {spacing:.3g}); "
+                              "use a workspace symmetric across its mid-plane of z")
+        muscle = environment_muscle(space)
+        self.actuator = (muscle.T @ muscle[self.partner]).argmax(1) if space.n_actuators else np.zeros(0, int)
+
+    def __call__(self, fields: DesignFields) -> DesignFields:
+        p = self.partner
+        return DesignFields(occupancy=(fields.occupancy + fields.occupancy[p]) / 2,
+                            stiffness=(fields.stiffness + fields.stiffness[p]) / 2,
+                            muscle=(fields.muscle + fields.muscle[p][:, self.actuator]) / 2,
+                            fiber=fields.fiber)
+
+
+def mirrored(fields: DesignFields, mirror: Mirror | None) -> DesignFields:
+    """`fields` made bilateral by `mirror`, or as they are without one."""
+    return fields if mirror is None else mirror(fields)
+
+
 def fixed_fibers(space: DesignSpace, fiber: list[float] | None) -> np.ndarray:
     """(N, 3) unit fibres: `fiber` everywhere, or the environment's own (else the heading +x)."""
     n = len(space.points)

@@ -4,6 +4,12 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 
+def _symmetric():
+    return field(default=False, metadata={
+        "help": "bilateral designs: occupancy, stiffness and muscles mirrored across the workspace's sagittal "
+                "plane (the mid-plane of z), each muscle onto its mirror image's actuator"})
+
+
 @dataclass
 class ParticleConfig:
     init_occupancy_logit: float = field(
@@ -30,6 +36,7 @@ class ParticleConfig:
         metadata={"min_len": 3, "help": "fixed muscle direction, normalised; null: the environment's own fibres "
                                         "(an animal's, +x for a box)"},
     )
+    symmetric: bool = _symmetric()
 
 
 # The occupancy, stiffness and fibre options every per-point representation shares.
@@ -80,6 +87,7 @@ class VoxelConfig:
     min_stiffness_ratio: float = _min_stiffness_ratio()
     max_stiffness_ratio: float = _max_stiffness_ratio()
     fiber: Optional[list[float]] = _fiber()
+    symmetric: bool = _symmetric()
 
 
 @dataclass
@@ -94,6 +102,7 @@ class ImplicitConfig:
     min_stiffness_ratio: float = _min_stiffness_ratio()
     max_stiffness_ratio: float = _max_stiffness_ratio()
     fiber: Optional[list[float]] = _fiber()
+    symmetric: bool = _symmetric()
 
 
 @dataclass
@@ -115,6 +124,7 @@ class DiffCPPNConfig:
     min_stiffness_ratio: float = _min_stiffness_ratio()
     max_stiffness_ratio: float = _max_stiffness_ratio()
     fiber: Optional[list[float]] = _fiber()
+    symmetric: bool = _symmetric()
 
 
 # neat-python's names; the paper's set for its CPPN-NEAT baseline (appendix "Evolution Strategy")

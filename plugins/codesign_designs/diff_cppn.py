@@ -6,8 +6,8 @@ import numpy as np
 import torch
 
 from codesign.interfaces import DesignFields, DesignSpace, Representation
-from codesign_designs.common import (centre_output_head, check_fiber, check_stiffness_ratios, coordinate_features,
-                                     fields_from_logits, fixed_fibers, linear_layer)
+from codesign_designs.common import (Mirror, centre_output_head, check_fiber, check_stiffness_ratios,
+                                     coordinate_features, fields_from_logits, fixed_fibers, linear_layer, mirrored)
 from codesign_designs.config import DiffCPPNConfig
 from codesign_designs.implicit import N_FEATURES
 
@@ -67,6 +67,7 @@ class DiffCPPNRepresentation(Representation):
         with torch.no_grad():
             centre_output_head(*self.head, self._hidden(), cfg.muscle_scale, cfg.init_occupancy_logit)
         self._fiber = torch.tensor(fixed_fibers(space, cfg.fiber), dtype=dtype)
+        self._mirror = Mirror(space) if cfg.symmetric else None
         self._default_stiffness = space.default_stiffness
 
     def parameters(self) -> list[torch.Tensor]:
@@ -83,4 +84,5 @@ class DiffCPPNRepresentation(Representation):
     def __call__(self) -> DesignFields:
         if not self.layers:
             raise RuntimeError("DiffCPPNRepresentation.setup() must be called before use")
-        return fields_from_logits(self._hidden() @ self.head[0] + self.head[1], self._default_stiffness, self.config, self._fiber)
+        logits = self._hidden() @ self.head[0] + self.head[1]
+        return mirrored(fields_from_logits(logits, self._default_stiffness, self.config, self._fiber), self._mirror)

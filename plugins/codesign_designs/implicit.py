@@ -6,8 +6,8 @@ import numpy as np
 import torch
 
 from codesign.interfaces import DesignFields, DesignSpace, Representation
-from codesign_designs.common import (centre_output_head, check_fiber, check_stiffness_ratios, coordinate_features,
-                                     fields_from_logits, fixed_fibers, linear_layer)
+from codesign_designs.common import (Mirror, centre_output_head, check_fiber, check_stiffness_ratios,
+                                     coordinate_features, fields_from_logits, fixed_fibers, linear_layer, mirrored)
 from codesign_designs.config import ImplicitConfig
 
 ACTIVATION = {"tanh": torch.tanh, "sin": torch.sin, "softplus": torch.nn.functional.softplus}
@@ -43,6 +43,7 @@ class ImplicitRepresentation(Representation):
         with torch.no_grad():
             centre_output_head(*self.layers[-1], self._hidden(), cfg.muscle_scale, cfg.init_occupancy_logit)
         self._fiber = torch.tensor(fixed_fibers(space, cfg.fiber), dtype=dtype)
+        self._mirror = Mirror(space) if cfg.symmetric else None
         self._default_stiffness = space.default_stiffness
 
     def parameters(self) -> list[torch.Tensor]:
@@ -58,4 +59,5 @@ class ImplicitRepresentation(Representation):
     def __call__(self) -> DesignFields:
         if not self.layers:
             raise RuntimeError("ImplicitRepresentation.setup() must be called before use")
-        return fields_from_logits(self._hidden() @ self.layers[-1][0] + self.layers[-1][1], self._default_stiffness, self.config, self._fiber)
+        logits = self._hidden() @ self.layers[-1][0] + self.layers[-1][1]
+        return mirrored(fields_from_logits(logits, self._default_stiffness, self.config, self._fiber), self._mirror)

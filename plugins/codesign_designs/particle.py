@@ -7,7 +7,8 @@ import torch
 
 from codesign.geometry import grid_partition
 from codesign.interfaces import DesignFields, DesignSpace, Representation
-from codesign_designs.common import check_fiber, check_stiffness_ratios, environment_muscle, fixed_fibers, near_cubic_grid
+from codesign_designs.common import (Mirror, check_fiber, check_stiffness_ratios, environment_muscle, fixed_fibers,
+                                     mirrored, near_cubic_grid)
 from codesign_designs.config import ParticleConfig
 
 
@@ -42,6 +43,7 @@ class ParticleRepresentation(Representation):
         self.stiffness = torch.zeros(n, dtype=dtype, requires_grad=True)
         self.muscle = torch.tensor(muscle, dtype=dtype, requires_grad=True)
         self._fiber = torch.tensor(fixed_fibers(space, cfg.fiber), dtype=dtype)
+        self._mirror = Mirror(space) if cfg.symmetric else None
         self._default_stiffness = space.default_stiffness
 
     def parameters(self) -> list[torch.Tensor]:
@@ -51,9 +53,9 @@ class ParticleRepresentation(Representation):
         if self.geometry is None:
             raise RuntimeError("ParticleRepresentation.setup() must be called before use")
         lo, hi = self.config.min_stiffness_ratio, self.config.max_stiffness_ratio
-        return DesignFields(
+        return mirrored(DesignFields(
             occupancy=torch.sigmoid(self.geometry),
             stiffness=self._default_stiffness * (lo + (hi - lo) * torch.sigmoid(self.stiffness)),
             muscle=torch.softmax(self.muscle, dim=1),
             fiber=self._fiber,
-        )
+        ), self._mirror)

@@ -6,8 +6,8 @@ import numpy as np
 import torch
 
 from codesign.interfaces import DesignFields, DesignSpace, Representation
-from codesign_designs.common import (check_fiber, check_stiffness_ratios, environment_muscle, fixed_fibers,
-                                     grid_counts, grid_weights, stiffness_map)
+from codesign_designs.common import (Mirror, check_fiber, check_stiffness_ratios, environment_muscle, fixed_fibers,
+                                     grid_counts, grid_weights, mirrored, stiffness_map)
 from codesign_designs.config import VoxelConfig
 
 
@@ -46,6 +46,7 @@ class VoxelRepresentation(Representation):
         self.stiffness = torch.zeros(voxels, dtype=dtype, requires_grad=True)
         self.muscle = torch.tensor(muscle, dtype=dtype, requires_grad=True)
         self._fiber = torch.tensor(fixed_fibers(space, cfg.fiber), dtype=dtype)
+        self._mirror = Mirror(space) if cfg.symmetric else None
         self._default_stiffness = space.default_stiffness
 
     def parameters(self) -> list[torch.Tensor]:
@@ -61,10 +62,10 @@ class VoxelRepresentation(Representation):
         if self.geometry is None:
             raise RuntimeError("VoxelRepresentation.setup() must be called before use")
         cfg = self.config
-        return DesignFields(
+        return mirrored(DesignFields(
             occupancy=torch.sigmoid(self._read(self.geometry)),
             stiffness=stiffness_map(self._read(self.stiffness), self._default_stiffness, cfg.min_stiffness_ratio,
                                     cfg.max_stiffness_ratio),
             muscle=torch.softmax(self._read(self.muscle), dim=1),
             fiber=self._fiber,
-        )
+        ), self._mirror)
