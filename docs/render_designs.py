@@ -1,10 +1,11 @@
 """Draw the pictures of docs/designs.md (headless) and print its parameter-count table.
 
 Run from the repository root: ``python docs/render_designs.py``. It writes small PNGs to
-docs/images/designs/: each animal coloured by muscle group, the fish primitives, and each
-representation's initial design on the default workspace (the `ground` environment's box robot
-at dx = 1/48, K = 4, seed 0), particles with occupancy >= 0.5 coloured by their strongest
-muscle (grey: passive).
+docs/images/designs/: each animal coloured by muscle group (and from the side, the top and the
+front), the fish primitives, each representation's initial design on the default workspace (the
+`ground` environment's box robot at dx = 1/48, K = 4, seed 0), particles with occupancy >= 0.5
+coloured by their strongest muscle (grey: passive), and an SDF-Lerp blend series from the seal
+to the fish.
 """
 
 from __future__ import annotations
@@ -26,7 +27,10 @@ REPRESENTATIONS = ["particle", "voxel", "implicit", "diff_cppn", "sdf_lerp", "wa
 COLORS = plt.get_cmap("tab10")
 
 
-def scatter(ax, points: np.ndarray, groups: np.ndarray, size: float) -> None:
+VIEWS = {"side": (0, -90), "top": (90, -90), "front": (0, 0)}  # (elevation, azimuth) of the camera
+
+
+def scatter(ax, points: np.ndarray, groups: np.ndarray, size: float, view: tuple[float, float] = (20, -60)) -> None:
     """Points in 3-D, x along the page, y up, coloured by group (grey: -1)."""
     colors = np.where(groups[:, None] >= 0, COLORS(np.maximum(groups, 0) % 10), (0.75, 0.75, 0.75, 1.0))
     ax.scatter(points[:, 0], points[:, 2], points[:, 1], c=colors, s=size, linewidths=0, depthshade=True)
@@ -37,7 +41,7 @@ def scatter(ax, points: np.ndarray, groups: np.ndarray, size: float) -> None:
     ax.set_ylim(middle[2] - half, middle[2] + half)
     ax.set_zlim(middle[1] - half, middle[1] + half)
     ax.set_box_aspect((1, 1, 1))
-    ax.view_init(elev=20, azim=-60)
+    ax.view_init(elev=view[0], azim=view[1])
     ax.set_axis_off()
 
 
@@ -57,6 +61,45 @@ def render_bodies() -> None:
         points = body.sample(0.02)
         groups = body.labels(points).groups
         figure(f"{name} ({body.n_groups} muscles)", points, groups, OUT / f"body_{name}.png")
+
+
+def render_animal_views() -> None:
+    """Each animal from the side, the top and the front, coloured by muscle group."""
+    for name in ANIMALS:
+        body = library_body(name)
+        points = body.sample(0.015)
+        groups = body.labels(points).groups
+        fig = plt.figure(figsize=(6.6, 2.2), dpi=90)
+        for i, (view, angles) in enumerate(VIEWS.items()):
+            ax = fig.add_subplot(1, 3, i + 1, projection="3d")
+            scatter(ax, points, groups, 2.0, angles)
+            ax.set_title(view, fontsize=8, y=0.92)
+        fig.suptitle(f"{name}: {', '.join(body.group_names)}", fontsize=7, y=0.99)
+        fig.subplots_adjust(0, 0, 1, 0.92, wspace=0)
+        fig.savefig(OUT / f"body_{name}_views.png")
+        plt.close(fig)
+
+
+def render_blend_series(space, first: str = "seal", second: str = "fish", steps: int = 5) -> None:
+    """SDF-Lerp between two primitives: every weight (geometry, stiffness, muscle, fibre) at 1 - t, t."""
+    entry = get_registry().get("representation", "sdf_lerp")
+    representation = entry.load_factory()(entry.load_config()(primitives=[first, second], init_noise=0.0))
+    representation.setup(space, np.random.default_rng(0))
+    fig = plt.figure(figsize=(2.0 * steps, 2.0), dpi=90)
+    for i, t in enumerate(np.linspace(0.0, 1.0, steps)):
+        with torch.no_grad():
+            for logits in representation.parameters():
+                logits.copy_(torch.log(torch.tensor([1 - t, t], dtype=logits.dtype).clamp_min(1e-12)))
+            design = representation()
+        kept = np.asarray(design.occupancy) >= 0.5
+        muscle = np.asarray(design.muscle)[kept]
+        ax = fig.add_subplot(1, steps, i + 1, projection="3d")
+        scatter(ax, space.points[kept], np.where(muscle.max(1) > 1e-6, muscle.argmax(1), -1), 3.0)
+        ax.set_title(f"t = {t:.2f}", fontsize=8, y=0.9)
+    fig.suptitle(f"sdf_lerp from {first} (t = 0) to {second} (t = 1)", fontsize=8, y=0.99)
+    fig.subplots_adjust(0, 0, 1, 0.9, wspace=0)
+    fig.savefig(OUT / f"blend_{first}_{second}.png")
+    plt.close(fig)
 
 
 def ground_space():
@@ -89,7 +132,9 @@ def render_representations() -> list[tuple[str, int]]:
 def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     render_bodies()
+    render_animal_views()
     counts = render_representations()
+    render_blend_series(ground_space())
     print("| representation | parameters (default ground workspace, K = 4) |\n| --- | --- |")
     for name, count in counts:
         print(f"| {name} | {count} |")
