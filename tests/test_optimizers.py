@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from codesign import runner
 from codesign.errors import CodesignError, RecipeError
@@ -122,3 +123,47 @@ def test_evaluate_writes_each_episodes_return_and_trajectory(tmp_path):
         data = np.load(run_dir / f"trajectory-{i}.npz")
         assert data["actions"].shape == (4, 2) and data["com"].shape == (4, 3)
         assert float(data["episode_return"]) == pytest.approx(row["episode_return"])
+
+
+def test_diff_physics_takes_back_a_step_that_leaves_the_design_unplayable():
+    """A design past a threshold is refused (as a design thinner than the grid is): the step is
+    undone, the design's learning rate halved, and the run goes on from the last playable design;
+    a refused first design is an error that says so."""
+    from types import SimpleNamespace
+
+    from codesign.errors import DesignError
+    from codesign_optimizers.config import DiffPhysicsConfig
+    from codesign_optimizers.diff_physics import DiffPhysics
+
+    class Knob:  # a one-parameter representation: the design is the parameter
+        def __init__(self, value):
+            self.x = torch.tensor([value], requires_grad=True)
+
+        def parameters(self):
+            return [self.x]
+
+        def __call__(self):
+            return self.x
+
+    class Cliff:  # the return grows with x, but x above 1 is unplayable
+        horizon, design_space = 1, SimpleNamespace(points=np.zeros((1, 3)))
+
+        def differentiable_episode(self, design, controller, checkpoint_every):
+            if design.item() > 1.0:
+                raise DesignError(f"design {design.item():.3g} is past the cliff")
+            return SimpleNamespace(loss=-design.sum(), episode_return=design.item(), com=torch.zeros(2, 3),
+                                   actions=np.zeros((1, 0)), metrics={})
+
+    optimizer = DiffPhysics(DiffPhysicsConfig(optimize="design", iterations=12, lr_design=0.3))
+    knob = Knob(0.5)
+    optimizer.setup(Cliff(), knob, SimpleNamespace(parameters=lambda: []), rng=np.random.default_rng(0), run_dir=None)
+    rows = [optimizer.step() for _ in range(12)]
+    refused = [row for row in rows if row.get("unplayable")]
+    assert refused and refused[0]["lr_design"] == pytest.approx(0.15)
+    played = [row["episode_return"] for row in rows if "episode_return" in row]
+    assert max(played) <= 1.0 and optimizer.best.best_return > 0.9  # it crept up to the cliff's edge
+    with pytest.raises(DesignError, match=r"the first design \(iteration 0\) is unplayable: design 2 is past"):
+        fresh = DiffPhysics(DiffPhysicsConfig(optimize="design", iterations=2))
+        fresh.setup(Cliff(), Knob(2.0), SimpleNamespace(parameters=lambda: []), rng=np.random.default_rng(0),
+                    run_dir=None)
+        fresh.step()

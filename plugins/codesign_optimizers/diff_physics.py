@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from codesign.artifacts import EpisodeRecord
-from codesign.errors import CodesignError, RecipeError
+from codesign.errors import CodesignError, DesignError, RecipeError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
 from codesign_optimizers.common import BestKeeper, parameter_groups
 from codesign_optimizers.config import DiffPhysicsConfig
@@ -40,7 +40,29 @@ class DiffPhysics(Optimizer):
         self.environment, self.representation, self.controller, self.rng = environment, representation, controller, rng
         self.groups = parameter_groups(self.config.optimize, representation, controller)
         self.best = BestKeeper(environment, controller, run_dir)
+        self._before: list[torch.Tensor] | None = None  # the parameters before the last Adam step
         self._new_adam()
+
+    def _parameters(self) -> list[torch.Tensor]:
+        return [p for params in self.groups.values() for p in params]
+
+    def _take_back(self, error: DesignError) -> dict[str, float]:
+        """Undo the last Adam step, whose design the environment refused, and halve the design's rate."""
+        if self._before is None:
+            raise DesignError(f"diff_physics: the first design (iteration {self.iteration}) is unplayable: {error}; "
+                              "use a finer environment.dx, a larger robot.size or another representation") from error
+        with torch.no_grad():
+            for p, saved in zip(self._parameters(), self._before):
+                p.copy_(saved)
+        self._before = None  # two refusals in a row go back no further than the last playable design
+        metrics = {"unplayable": 1.0, "best_return": self.best.best_return,
+                   "restart": float(self.iteration // self.config.iterations)}
+        for group in self.adam.param_groups:
+            if group["name"] == "design":
+                group["lr"] /= 2
+                metrics["lr_design"] = group["lr"]
+        self.iteration += 1
+        return metrics
 
     def _new_adam(self) -> None:
         lr = {"control": self.config.lr_control, "design": self.config.lr_design}
@@ -53,13 +75,17 @@ class DiffPhysics(Optimizer):
         self.representation.setup(env.design_space, self.rng)
         self.controller.setup(env.action_dim, env.observation_dim, env.control_dt, self.rng)
         self.groups = parameter_groups(self.config.optimize, self.representation, self.controller)
+        self._before = None
         self._new_adam()
 
     def step(self) -> dict[str, float]:
         if self.iteration and self.iteration % self.config.iterations == 0:
             self._restart()
         design = self.representation()
-        episode = self.environment.differentiable_episode(design, self.controller, self.config.checkpoint_every)
+        try:
+            episode = self.environment.differentiable_episode(design, self.controller, self.config.checkpoint_every)
+        except DesignError as error:
+            return self._take_back(error)
         self.adam.zero_grad()
         episode.loss.backward()
         metrics = {"loss": episode.loss.item(), "episode_return": episode.episode_return,
@@ -79,6 +105,7 @@ class DiffPhysics(Optimizer):
                                episode.metrics)
         self.best.offer(episode.episode_return, design, record, self.iteration)  # before the update changes them
         metrics["best_return"] = self.best.best_return
+        self._before = [p.detach().clone() for p in self._parameters()]
         self.adam.step()
         self.iteration += 1
         return metrics
