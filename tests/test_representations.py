@@ -146,10 +146,11 @@ def test_sdf_lerp_with_a_one_hot_weight_is_that_primitive(primitive):
     assert lo[1] == pytest.approx(LO[1]) and (lo + hi)[[0, 2]] / 2 == pytest.approx((LO + HI)[[0, 2]] / 2)
 
 
-def test_a_blend_of_annotated_body_files_is_the_blend_of_the_bodies_they_came_from(tmp_path):
+@pytest.mark.parametrize("blend", ["sdf_lerp", "wasserstein"])
+def test_a_blend_of_annotated_body_files_is_the_blend_of_the_bodies_they_came_from(tmp_path, blend):
     """Two library fish through `codesign annotate` (lattice samples in a file) blend 50/50 into
-    the same solid as the library bodies themselves (once 961 particles against 1,487: the
-    files' bodies were 30% too fat and their distances at most a sample deep)."""
+    the same solid as the library bodies themselves (once 961 particles against 1,487 in
+    SDF-Lerp: the files' bodies were 30% too fat and their distances at most a sample deep)."""
     from codesign_designs.annotate import annotate, save_annotation
 
     names = ["fish_slender", "fish_deep"]
@@ -160,9 +161,10 @@ def test_a_blend_of_annotated_body_files_is_the_blend_of_the_bodies_they_came_fr
     space = box_space(spacing=0.005)
     occupied = []
     for primitives in (names, files):
-        representation = build("sdf_lerp", space, primitives=primitives, init_noise=0.0)  # equal weights
+        representation = build(blend, space, primitives=primitives, init_noise=0.0)  # equal weights
         occupied.append(int((representation().occupancy > 0.5).sum()))
-    assert occupied[1] == pytest.approx(occupied[0], rel=0.03), occupied
+    # the barycenter's blur turns the files' staircase surfaces into a few percent (9% before)
+    assert occupied[1] == pytest.approx(occupied[0], rel={"sdf_lerp": 0.03, "wasserstein": 0.07}[blend]), occupied
 
 
 def rotation_z(degrees: float) -> torch.Tensor:
