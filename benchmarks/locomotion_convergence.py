@@ -19,10 +19,8 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from codesign_mpm import BodySpec, MaterialSpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec, build_particles
-from codesign_mpm.accuracy import gait
-from codesign_mpm.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
+from codesign_mpm.accuracy import Setting, gait, robot_env
 from codesign_mpm.engine import Simulator
-from codesign_mpm.env import LocomotionEnv
 
 FRAMES = 125  # 1 s of 8 ms control steps
 RESOLUTIONS = (32, 48, 64, 96, 128)  # 1 / dx
@@ -30,11 +28,7 @@ RESOLUTIONS = (32, 48, 64, 96, 128)  # 1 / dx
 
 def ground(dx: float, cfl: float, friction: float, arch: str, actions=gait) -> dict:
     """Distance along x after 1 s (and after 0.5 s) of a gait (`actions(frame, k)`), on robot_ground's setup."""
-    preset = PRESETS["ground"]
-    config = PRESET_CONFIGS["ground"](
-        dx=dx, cfl=cfl, horizon=FRAMES, arch=arch, terrain=TerrainConfig(height=0.13, friction=friction),
-        robot=RobotConfig(youngs_modulus=preset.robot_youngs_modulus, position=[0.35, 0.25]))
-    env = LocomotionEnv(config, preset)
+    env = robot_env("ground", Setting(dx=dx, cfl=cfl), FRAMES, friction=friction, arch=arch)
     com0 = env.reset()[:3]
     t0 = time.perf_counter()
     xs = [float(env.step(actions(f, env.action_dim)).info["com"][0] - com0[0]) for f in range(FRAMES)]
