@@ -215,12 +215,9 @@ class LocomotionEnv(Environment):
         self.observer = Observer(config.observation, self.task, k, config.horizon, config.dx, height_map(self.scene))
         self.observation_dim = self.observer.dim
         self.particles: Particles = _concat(self.base_particles, self.cover_particles)
-        cover = preset.cover if config.cover is None else config.cover
-        if cover.settled:
-            F, jp = settled_state(self.scene, everything)
-            self._cover_F, self._cover_jp = F[~everything.robot], jp[~everything.robot]
-        else:
-            self._cover_F, self._cover_jp = np.tile(np.eye(3), (self.cover_particles.n, 1, 1)), np.ones(self.cover_particles.n)
+        cover = config.resolved_cover(preset)
+        self._settled = cover.settled
+        self._fillable = self._under_cover(cover)
         self.sim: Simulator | None = None
         self._grad_sim: Simulator | None = None
         self._batch: BatchSimulator | None = None
@@ -264,7 +261,34 @@ class LocomotionEnv(Environment):
             muscle=_numpy(design.muscle).reshape(base.muscle.shape)[keep],
             fiber=_numpy(design.fiber).reshape(base.n, 3)[keep],
         )
-        return _concat(robot, self.cover_particles)
+        return _concat(robot, self._cover_with_fill(self._fillable & ~keep))
+
+    def _under_cover(self, cover: CoverConfig) -> np.ndarray:
+        """(N,) the workspace particles inside the cover layer's extent (above the terrain, below its
+        top): where the cover would be if the workspace were not there; none without a cover."""
+        x = self.base_particles.x
+        if cover.kind == "none" or self.cover_particles.n == 0:
+            return np.zeros(len(x), dtype=bool)
+        heights = np.maximum(height_map(self.scene), self.scene.wall)
+        ij = np.clip(np.round(x[:, [0, 2]] / self.scene.dx).astype(int), 0, np.asarray(heights.shape) - 1)
+        ground = heights[ij[:, 0], ij[:, 1]]
+        return (x[:, 1] > ground) & (x[:, 1] < ground + cover.thickness)
+
+    def _cover_with_fill(self, fill: np.ndarray) -> Particles:
+        """The cover, plus cover material at the workspace particles `fill`: the part of the layer a
+        design leaves empty. Without it a design smaller than its workspace would sit in a hole in
+        the water (or sand), which collapses at the start and carries the body with it."""
+        if not fill.any():
+            return self.cover_particles
+        cover, base = self.cover_particles, self.base_particles
+        n = int(fill.sum())
+        like = {name: np.repeat(getattr(cover, name)[:1], n, axis=0)
+                for name in ("density", "youngs_modulus", "poisson_ratio", "material", "muscle_ratio", "params", "body",
+                             "robot", "fiber")}
+        filled = Particles(x=base.x[fill], v=base.v[fill], volume=base.volume[fill],
+                           muscle=np.zeros((n, cover.muscle.shape[1])), **like)
+        return Particles(**{name: np.concatenate([getattr(filled, name), getattr(cover, name)])
+                            for name in Particles.__dataclass_fields__})
 
     def reset(self, design: DesignFields | None = None, seed: int | None = None) -> np.ndarray:
         """Load ``design`` (or keep the last one); the tasks are deterministic, so ``seed`` is unused."""
@@ -328,9 +352,11 @@ class LocomotionEnv(Environment):
     def initial_state(self, particles: Particles) -> dict[str, np.ndarray]:
         """The deformation F (N, 3, 3) and plastic volume ratio Jp (N,) a design's particles start from
         (`Simulator.set_initial_state` keywords): the robot at rest, the cover settled."""
-        n = int(particles.robot.sum())
-        return {"F": np.concatenate([np.tile(np.eye(3), (n, 1, 1)), self._cover_F]),
-                "Jp": np.concatenate([np.ones(n), self._cover_jp])}
+        F, jp = np.tile(np.eye(3), (particles.n, 1, 1)), np.ones(particles.n)
+        if self._settled and self.cover_particles.n:
+            rest = ~particles.robot
+            F[rest], jp[rest] = settled_state(self.scene, _subset(particles, rest))
+        return {"F": F, "Jp": jp}
 
     def _start_task(self, particles: Particles, task: Task | None = None, observer: Observer | None = None
                     ) -> EpisodeState:

@@ -102,3 +102,30 @@ def test_a_body_lighter_than_water_floats_and_a_heavier_one_sinks():
             env.close()
     assert final[500.0][1] > surface  # measured 0.299 (surface 0.25)
     assert final[3000.0][1] < surface - DX / 2 and final[3000.0][4] < 0  # measured 0.230, still sinking
+
+
+def test_a_design_smaller_than_its_workspace_sits_in_water_not_in_a_hole_that_carries_it_away():
+    """The cover is laid around the whole workspace; what a design leaves empty of it is filled with
+    the cover's material. A corner of a box of water's density, at rest in the ocean, then stays where it
+    is: it moves 0.008 cells in 0.4 s (measured; without the fill the water fell into the empty part
+    and pushed it 0.062 cells, and the ocean studies' fish, which fills a tenth of its workspace,
+    drifted back 0.065 in 0.4 s, more than the swimming it was trained for)."""
+    from codesign.interfaces import DesignFields
+
+    env = make_env("ocean", robot=RobotConfig(size=[0.3, 0.15, 0.15], density=1e3, youngs_modulus=1e5))
+    try:
+        base = env.base_particles
+        front = ((base.x[:, 0] < np.quantile(base.x[:, 0], 0.35))
+                 & (base.x[:, 1] < np.quantile(base.x[:, 1], 0.5))).astype(float)  # a lower front corner
+        design = DesignFields(front, np.full(base.n, 1e5), base.muscle, base.fiber)
+        start = env.reset(design)[:3]
+        particles = env.particles
+        water = ~particles.robot
+        assert particles.robot.sum() == front.sum()
+        assert water.sum() == env.cover_particles.n + base.n - front.sum()  # the rest of the workspace is water
+        assert (particles.material[water] == env.cover_particles.material[0]).all()
+        for _ in range(50):
+            result = env.step(np.zeros(env.action_dim))
+        assert np.linalg.norm(result.observation[:3] - start) < 0.025 * DX
+    finally:
+        env.close()
