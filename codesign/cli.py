@@ -106,6 +106,28 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
                       soft_wrap=True)
         typer.echo(str(directory))
 
+    @app.command()
+    def study(
+        name: str = typer.Argument(..., help="A study in recipes/studies/ (e.g. what_to_optimise), or a study file."),
+        scale: str = typer.Option("cpu", "--scale", help="cpu (the default, reduced for a 2-core machine) or a "
+                                                          "scale the study defines (tiny, paper)."),
+        study_dir: Optional[Path] = typer.Option(None, "--dir", help="Where to write it (default studies/NAME, "
+                                                                     "with -SCALE for other scales); continued if it exists."),
+        docs: bool = typer.Option(False, "--docs", help="Also write its section into docs/studies.md and its chart "
+                                                        "into docs/images/studies/."),
+        no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
+    ) -> None:
+        """Run one of the paper's studies (every arm x seed, continuing a killed one) and print its table."""
+        from codesign import study as studies
+
+        spec = studies.load_study(name, scale)
+        directory = studies.run_study(spec, study_dir, progress=not no_progress)
+        if docs:
+            _stderr.print(f"wrote {studies.publish(spec, directory)}", markup=False, highlight=False)
+        _stderr.print((directory / "section.md").read_text(encoding="utf-8"), markup=False, highlight=False,
+                      soft_wrap=True)
+        typer.echo(str(directory))
+
     @app.command("eval")
     def evaluate(
         run_dir: Path = typer.Argument(..., help="A run directory with a best/ design and controller."),

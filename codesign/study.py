@@ -1,0 +1,307 @@
+"""The paper's studies as one command: `codesign study NAME` (recipes/studies/NAME.yaml).
+
+A study is a base recipe and a list of arms (the rows of one of the paper's tables), each arm a
+few changes to the base and, where the paper has one, the paper's number for it. Every arm runs
+as a sweep over the study's seeds (docs/sweeps.md), so a study is resumable the way a sweep is,
+shows its progress and logs each run to W&B (offline by default). From the finished runs it
+writes the table (returns in the paper's unit: the per-step mean of the task's reward, i.e. the
+best episode's return divided by the horizon), a bar chart beside the paper's numbers, and a
+Markdown section saying whether the paper's ordering of the arms holds at this scale.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from omegaconf import OmegaConf
+from scipy.stats import kendalltau
+
+from codesign.errors import CodesignError, RecipeError
+from codesign.recipe import RECIPES_DIR, compose, find_recipe, merge_recipes, resolve_recipe
+
+STUDIES_DIR = "studies"  # under recipes/
+BEST_INFO = Path("best") / "info.json"
+DOCS_PAGE = Path("docs") / "studies.md"
+DOCS_IMAGES = Path("docs") / "images" / "studies"
+SCALE_DEFAULT = "cpu"
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One row of a study's table: its label, its changes to the base recipe, the paper's value."""
+
+    label: str
+    set: dict[str, Any] = field(default_factory=dict)  # dotted recipe key -> value, merged into the base
+    paper: float | None = None
+
+    @property
+    def slug(self) -> str:
+        return re.sub(r"[^a-z0-9]+", "_", self.label.lower()).strip("_")
+
+
+@dataclass(frozen=True)
+class Study:
+    name: str
+    title: str
+    paper: str  # where the paper's numbers are, and its setup
+    differs: str  # what differs from the paper's setup, for the docs
+    seeds: tuple[int, ...]
+    arms: tuple[Arm, ...]
+    recipe: dict  # the base recipe, shared by every arm
+    scale: str
+
+
+@dataclass(frozen=True)
+class Row:
+    """One arm's outcome over its seeds."""
+
+    arm: Arm
+    per_step: tuple[float, ...]  # each seed's best episode: return / horizon
+    torn: tuple[float, ...]  # each seed's best episode: mass fraction torn off
+    wall_time: tuple[float, ...]
+
+    @property
+    def mean(self) -> float:
+        return sum(self.per_step) / len(self.per_step)
+
+    @property
+    def std(self) -> float:
+        n = len(self.per_step)
+        if n < 2:
+            return float("nan")
+        return math.sqrt(sum((v - self.mean) ** 2 for v in self.per_step) / (n - 1))
+
+
+def _dotted(items: Mapping[str, Any]) -> dict:
+    """{'a.b': 1} -> {'a': {'b': 1}}."""
+    nested: dict = {}
+    for key, value in items.items():
+        node = nested
+        *parents, last = str(key).split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[last] = value
+    return nested
+
+
+def find_study(ref: str) -> Path:
+    """A study file: a path, or a name in recipes/studies/ (of the working directory or the package)."""
+    if Path(ref).is_file():
+        return Path(ref)
+    directories = list(dict.fromkeys([Path.cwd() / "recipes" / STUDIES_DIR, RECIPES_DIR / STUDIES_DIR]))
+    for directory in directories:
+        for candidate in (directory / ref, directory / f"{ref}.yaml"):
+            if candidate.is_file():
+                return candidate
+    known = sorted({p.stem for d in directories if d.is_dir() for p in d.glob("*.yaml")})
+    raise RecipeError(f"study {ref!r} not found (a file, or a name in recipes/{STUDIES_DIR}/); "
+                      f"known: {', '.join(known) or '(none)'}")
+
+
+def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
+    """A study file at one of its scales; its `recipe:` may start from a `base:` recipe file."""
+    path = find_study(ref)
+    raw = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    assert isinstance(raw, dict)
+    where = f"study '{path.stem}'"
+    spec, recipe = raw.get("study"), raw.get("recipe")
+    if not isinstance(spec, dict) or not isinstance(recipe, dict):
+        raise RecipeError(f"invalid {where}: a study file needs a 'study:' section and a 'recipe:' section")
+    if "base" in recipe:
+        base = compose(find_recipe(str(recipe.pop("base")), relative_to=path.parent))
+        base.pop("name", None)
+        recipe = merge_recipes(base, recipe)
+    if not spec.get("arms"):
+        raise RecipeError(f"invalid {where}: study.arms: empty; list the table's rows (label, set, paper)")
+    scales = spec.get("scales") or {}
+    if scale != SCALE_DEFAULT and scale not in scales:
+        raise RecipeError(f"invalid {where}: --scale {scale!r} is not a scale of this study; "
+                          f"allowed: {', '.join([SCALE_DEFAULT, *scales])}")
+    seeds = tuple(spec.get("seeds", [0, 1, 2]))
+    if scale != SCALE_DEFAULT:
+        changes = dict(scales[scale])
+        seeds = tuple(changes.pop("seeds", seeds))
+        recipe = merge_recipes(recipe, _dotted(changes))
+    arms = []
+    for i, arm in enumerate(spec["arms"]):
+        unknown = set(arm) - {"label", "set", "paper", "scales"}
+        if "label" not in arm or unknown:
+            raise RecipeError(f"invalid {where}: study.arms[{i}]: needs 'label' and takes set, paper, scales"
+                              + (f"; unknown {', '.join(sorted(unknown))}" if unknown else ""))
+        changes = {**(arm.get("set") or {}), **((arm.get("scales") or {}).get(scale) or {})}
+        arms.append(Arm(arm["label"], changes, arm.get("paper")))
+    if len({a.slug for a in arms}) != len(arms):
+        raise RecipeError(f"invalid {where}: study.arms: two labels give the same directory name")
+    return Study(path.stem, spec.get("title", path.stem), spec.get("paper", ""), spec.get("differs", ""),
+                 seeds, tuple(arms), recipe, scale)
+
+
+def arm_recipe(study: Study, arm: Arm) -> dict:
+    """The recipe of one arm: the base with its keys set (a section given a new `name` is replaced,
+    as in any recipe), swept over the study's seeds."""
+    data = merge_recipes(study.recipe, _dotted(arm.set))
+    data["name"] = f"{study.name}-{arm.slug}"
+    data["sweep"] = {"method": "grid", "metric": {"name": "best.episode_return", "goal": "maximize"},
+                     "parameters": {"seed": {"values": list(study.seeds)}}}
+    return data
+
+
+def study_dir(study: Study, directory: str | Path | None) -> Path:
+    if directory is not None:
+        return Path(directory)
+    suffix = "" if study.scale == SCALE_DEFAULT else f"-{study.scale}"
+    return Path(STUDIES_DIR) / f"{study.name}{suffix}"
+
+
+def run_study(study: Study, directory: str | Path | None = None, *, progress: bool = True) -> Path:
+    """Run every arm (an arm already under way or done is continued, not restarted); then tabulate."""
+    from codesign import sweep as sweeps
+
+    root = study_dir(study, directory)
+    recipes = [resolve_recipe(arm_recipe(study, arm), default_name=arm.slug) for arm in study.arms]  # all checked first
+    for i, (arm, recipe) in enumerate(zip(study.arms, recipes)):
+        arm_dir = root / arm.slug
+        resume = (arm_dir / sweeps.SWEEP_FILE).is_file()
+        if progress:
+            print(f"[{study.name}] arm {i + 1}/{len(study.arms)}: {arm.label}"
+                  + (" (continuing)" if resume else ""), flush=True)
+        sweeps.run_sweep(recipe, sweep_dir=arm_dir, resume=resume, progress=progress)
+    write_results(study, root)
+    return root
+
+
+def collect(study: Study, root: Path) -> list[Row]:
+    """Each arm's per-step return, torn-off mass and wall time over the seeds of its finished runs."""
+    from codesign import sweep as sweeps
+
+    rows = []
+    for arm in study.arms:
+        runs = [d for d in sorted((root / arm.slug).glob("t*-seed*")) if sweeps.finished(d)]
+        if not runs:
+            raise CodesignError(f"study {study.name}: arm {arm.label!r} has no finished run in {root / arm.slug}; "
+                                f"run `codesign study {study.name}` to (re)start it")
+        per_step, torn, wall = [], [], []
+        for run in runs:
+            horizon = OmegaConf.load(run / "config.yaml").environment.horizon
+            summary = json.loads((run / sweeps.SUMMARY_FILE).read_text(encoding="utf-8"))
+            info = json.loads((run / BEST_INFO).read_text(encoding="utf-8")) if (run / BEST_INFO).is_file() else {}
+            per_step.append(summary["best"]["episode_return"] / horizon)
+            torn.append(info.get("torn_fraction", float("nan")))  # the best episode's (environments with bodies)
+            wall.append(summary["wall_time"])
+        rows.append(Row(arm, tuple(per_step), tuple(torn), tuple(wall)))
+    return rows
+
+
+def verdict(rows: list[Row]) -> str:
+    """Whether the paper's ordering of the arms holds here, and how clearly."""
+    compared = [r for r in rows if r.arm.paper is not None]
+    if len(compared) < 2:
+        return "The paper gives fewer than two of these numbers: no ordering to compare."
+    paper_order = sorted(compared, key=lambda r: r.arm.paper, reverse=True)
+    ours_order = sorted(compared, key=lambda r: r.mean, reverse=True)
+    tau = kendalltau([r.arm.paper for r in compared], [r.mean for r in compared]).statistic
+    agreement = f"Kendall's tau {tau:.2f}" if math.isfinite(tau) else "Kendall's tau undefined: tied means"
+    names = " > ".join(r.arm.label for r in paper_order)
+    if paper_order == ours_order:
+        text = f"The paper's ordering ({names}) **holds** here ({agreement})."
+    else:
+        text = (f"The paper's ordering ({names}) **does not hold** here: ours is "
+                f"{' > '.join(r.arm.label for r in ours_order)} ({agreement}).")
+    unclear = [f"{a.arm.label} / {b.arm.label}" for a, b in zip(paper_order, paper_order[1:])
+               if not abs(a.mean - b.mean) > (a.std if math.isfinite(a.std) else 0) + (b.std if math.isfinite(b.std) else 0)]
+    if unclear:
+        text += (" Within one standard deviation of each other over seeds (not separated at this scale): "
+                 + ", ".join(unclear) + ".")
+    return text
+
+
+def _fmt(v: float) -> str:
+    return "-" if v is None or not math.isfinite(v) else f"{v:.4f}"
+
+
+def _percent(v: float) -> str:
+    return "-" if not math.isfinite(v) else f"{v:.1%}"
+
+
+def table_markdown(rows: list[Row]) -> str:
+    lines = ["| arm | ours: per-step return, mean | std over seeds | seeds | paper | torn-off mass (max) | wall s (mean) |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        lines.append(f"| {r.arm.label} | {_fmt(r.mean)} | {_fmt(r.std)} | {len(r.per_step)} | "
+                     f"{_fmt(r.arm.paper) if r.arm.paper is not None else '-'} | {_percent(max(r.torn))} | "
+                     f"{sum(r.wall_time) / len(r.wall_time):.0f} |")
+    return "\n".join(lines)
+
+
+def plot(study: Study, rows: list[Row], path: Path) -> Path:
+    """Ours (mean, one std over seeds, each seed a dot) beside the paper's number, per arm."""
+    from codesign.plots import _pyplot
+
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(rows), 3.2), constrained_layout=True)
+    xs = range(len(rows))
+    ax.bar([x - 0.2 for x in xs], [r.mean for r in rows], width=0.4, yerr=[0 if math.isnan(r.std) else r.std
+                                                                             for r in rows],
+           capsize=3, label=f"ours ({study.scale} scale)")
+    for x, r in zip(xs, rows):
+        ax.scatter([x - 0.2] * len(r.per_step), r.per_step, color="k", s=8, zorder=3)
+    ax.bar([x + 0.2 for x in xs], [r.arm.paper if r.arm.paper is not None else 0 for r in rows], width=0.4,
+           label="paper", color="tab:gray")
+    ax.axhline(0, color="k", linewidth=0.5)
+    ax.set_xticks(list(xs), [r.arm.label for r in rows], fontsize=8)
+    ax.set_ylabel("per-step return")
+    ax.set_title(study.title, fontsize=9)
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def section(study: Study, rows: list[Row], image: str) -> str:
+    return "\n\n".join([
+        f"## {study.title}",
+        f"`codesign study {study.name}`" + ("" if study.scale == SCALE_DEFAULT else f" --scale {study.scale}")
+        + f": {len(study.seeds)} seed{'s' if len(study.seeds) > 1 else ''} per arm. Paper: {study.paper}",
+        table_markdown(rows),
+        verdict(rows),
+        f"![{study.name}]({image})",
+        f"What differs from the paper: {study.differs}" if study.differs else "",
+    ]).rstrip() + "\n"
+
+
+def write_results(study: Study, root: Path) -> list[Row]:
+    """table.csv, table.md, the chart and section.md in the study's directory."""
+    rows = collect(study, root)
+    with open(root / "table.csv", "w", newline="", encoding="utf-8") as f:
+        out = csv.writer(f)
+        out.writerow(["arm", "mean", "std", "seeds", "paper", "per_step", "torn", "wall_time"])
+        for r in rows:
+            out.writerow([r.arm.label, r.mean, r.std, len(r.per_step), r.arm.paper, list(r.per_step), list(r.torn),
+                          list(r.wall_time)])
+    (root / "table.md").write_text(table_markdown(rows) + "\n", encoding="utf-8")
+    plot(study, rows, root / f"{study.name}.png")
+    (root / "section.md").write_text(section(study, rows, f"{study.name}.png"), encoding="utf-8")
+    return rows
+
+
+def publish(study: Study, root: Path, repo: Path = Path(".")) -> Path:
+    """Put the study's section into docs/studies.md (replacing its earlier one) and its chart into docs/images."""
+    rows = collect(study, root)
+    images = repo / DOCS_IMAGES
+    images.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(root / f"{study.name}.png", images / f"{study.name}.png")
+    text = section(study, rows, f"images/studies/{study.name}.png")
+    begin, end = f"<!-- study:{study.name} -->", f"<!-- /study:{study.name} -->"
+    page = repo / DOCS_PAGE
+    current = page.read_text(encoding="utf-8") if page.is_file() else "# The paper's studies\n"
+    block = f"{begin}\n{text}{end}"
+    pattern = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
+    current = pattern.sub(lambda _: block, current) if pattern.search(current) else current.rstrip() + f"\n\n{block}\n"
+    page.write_text(current, encoding="utf-8")
+    return page

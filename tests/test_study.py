@@ -1,0 +1,109 @@
+"""`codesign study`: a study's arms run as sweeps over seeds, its table in the paper's unit (per-step
+return), the verdict on the paper's ordering, resume, docs; every shipped study file resolves."""
+import csv
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from codesign import RecipeError
+from codesign.recipe import RECIPES_DIR, resolve_recipe
+from codesign.study import Arm, Row, arm_recipe, load_study, publish, verdict
+
+SHIPPED = sorted((RECIPES_DIR / "studies").glob("*.yaml"))
+
+
+@pytest.fixture
+def toy_study(tmp_path, toy_recipe) -> Path:
+    """Two arms of the physics-free toy recipe (the action bound), two seeds, with paper numbers."""
+    study = {
+        "study": {"title": "Toy bound", "paper": "none", "seeds": [0, 1],
+                  "arms": [{"label": "Loose bound", "paper": 0.5, "set": {"controller.bound": 0.3}},
+                           {"label": "Tight bound", "paper": 0.2, "set": {"controller.bound": 0.01}}],
+                  "scales": {"tiny": {"seeds": [3], "optimizer.episodes": 1}}},
+        "recipe": {**toy_recipe, "tracking": {"wandb_mode": "disabled"}},
+    }
+    path = tmp_path / "toy_bound.yaml"
+    path.write_text(yaml.safe_dump(study))
+    return path
+
+
+def test_each_arm_runs_once_per_seed_and_the_table_holds_each_best_return_per_step(tmp_path, toy_study, cli):
+    code, out, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
+    assert code == 0, err
+    root = Path(out.strip())
+    rows = {r["arm"]: r for r in csv.DictReader((root / "table.csv").open())}
+    assert set(rows) == {"Loose bound", "Tight bound"}
+    for arm in ("loose_bound", "tight_bound"):
+        runs = sorted((root / arm).glob("t*-seed*"))
+        assert [yaml.safe_load((r / "config.yaml").read_text())["seed"] for r in runs] == [0, 1]
+        horizon = yaml.safe_load((runs[0] / "config.yaml").read_text())["environment"]["horizon"]
+        expected = [json.loads((r / "summary.json").read_text())["best"]["episode_return"] / horizon for r in runs]
+        label = "Loose bound" if arm == "loose_bound" else "Tight bound"
+        assert json.loads(rows[label]["per_step"]) == pytest.approx(expected)
+        assert float(rows[label]["mean"]) == pytest.approx(sum(expected) / 2)
+    assert (root / "toy_bound.png").stat().st_size > 1000
+    assert "Kendall's tau" in (root / "section.md").read_text()
+
+
+def test_a_rerun_continues_the_study_and_reruns_no_finished_run(tmp_path, toy_study, cli):
+    cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
+    summary = next((tmp_path / "s" / "loose_bound").glob("t*-seed0")) / "summary.json"
+    before = summary.stat().st_mtime_ns
+    table = (tmp_path / "s" / "table.md").read_text()
+    code, _, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
+    assert code == 0, err
+    assert summary.stat().st_mtime_ns == before and (tmp_path / "s" / "table.md").read_text() == table
+
+
+def test_a_scale_changes_seeds_and_settings_and_an_unknown_scale_names_the_allowed_ones(toy_study):
+    tiny = load_study(str(toy_study), "tiny")
+    assert tiny.seeds == (3,) and tiny.recipe["optimizer"]["episodes"] == 1
+    with pytest.raises(RecipeError, match="'huge' is not a scale of this study; allowed: cpu, tiny"):
+        load_study(str(toy_study), "huge")
+
+
+def test_an_arm_with_an_unknown_key_is_an_error_naming_it(tmp_path, toy_study):
+    data = yaml.safe_load(toy_study.read_text())
+    data["study"]["arms"][0]["sett"] = {}
+    toy_study.write_text(yaml.safe_dump(data))
+    with pytest.raises(RecipeError, match=r"study.arms\[0\]: .*unknown sett"):
+        load_study(str(toy_study))
+
+
+def _row(label: str, paper: float, values: tuple[float, ...]) -> Row:
+    return Row(Arm(label, paper=paper), values, (0.0,) * len(values), (1.0,) * len(values))
+
+
+def test_the_verdict_says_whether_the_paper_ordering_holds_and_which_arms_the_seeds_do_not_separate():
+    held = verdict([_row("A", 0.1, (1.0, 1.1)), _row("B", 0.3, (3.0, 3.1))])
+    assert "(B > A) **holds**" in held and "tau 1.00" in held and "not separated" not in held
+    reversed_ = verdict([_row("A", 0.1, (3.0, 3.1)), _row("B", 0.3, (1.0, 1.1))])
+    assert "**does not hold** here: ours is A > B" in reversed_
+    close = verdict([_row("A", 0.1, (1.0, 2.0)), _row("B", 0.3, (1.2, 2.2))])
+    assert "**holds**" in close and "not separated at this scale): B / A" in close
+
+
+def test_publish_replaces_the_study_section_in_docs(tmp_path, toy_study, cli):
+    cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
+    repo = tmp_path / "repo"
+    (repo / "docs").mkdir(parents=True)
+    (repo / "docs" / "studies.md").write_text("# Studies\n\nintro\n")
+    study = load_study(str(toy_study))
+    publish(study, tmp_path / "s", repo)
+    publish(study, tmp_path / "s", repo)  # a second publish replaces, not appends
+    page = (repo / "docs" / "studies.md").read_text()
+    assert page.startswith("# Studies\n\nintro\n") and page.count("<!-- study:toy_bound -->") == 1
+    assert "## Toy bound" in page and (repo / "docs" / "images" / "studies" / "toy_bound.png").is_file()
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=[p.stem for p in SHIPPED])
+def test_every_shipped_study_resolves_every_arm_at_every_scale(path):
+    scales = ["cpu", *(yaml.safe_load(path.read_text())["study"].get("scales") or {})]
+    assert "tiny" in scales, "a shipped study needs a tiny scale for its smoke test"
+    for scale in scales:
+        study = load_study(str(path), scale)
+        assert len(study.seeds) >= (1 if scale == "tiny" else 3)
+        for arm in study.arms:
+            resolve_recipe(arm_recipe(study, arm), default_name=arm.slug)
