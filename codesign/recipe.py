@@ -77,6 +77,9 @@ class RecipeSettings:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     sweep: SweepConfig | None = None
+    init_controller: str | None = field(default=None, metadata={
+        "help": "a run directory whose best controller (best/controller.pt) the controller starts from, e.g. "
+                "to optimise designs under a pretrained gait; null: the controller's own initialisation"})
 
 
 @dataclass(frozen=True)

@@ -143,6 +143,10 @@ def _execute(
         env, optimizer = parts.environment, parts.optimizer
         parts.representation.setup(env.design_space, rng)
         parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
+        if recipe.settings.init_controller is not None:
+            from codesign.artifacts import load_controller
+
+            load_controller(Path(recipe.settings.init_controller), parts.controller)
         optimizer.setup(env, parts.representation, parts.controller, rng=rng, run_dir=run_dir)
         if checkpoint:
             optimizer.load_state_dict(checkpoint["optimizer"])

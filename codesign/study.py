@@ -55,6 +55,7 @@ class Study:
     arms: tuple[Arm, ...]
     recipe: dict  # the base recipe, shared by every arm
     scale: str
+    prepare: Arm | None = None  # a run made first (first seed), whose best controller every arm starts from
 
 
 @dataclass(frozen=True)
@@ -107,9 +108,13 @@ def find_study(ref: str) -> Path:
 def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
     """A study file at one of its scales; its `recipe:` may start from a `base:` recipe file."""
     path = find_study(ref)
-    raw = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    assert isinstance(raw, dict)
     where = f"study '{path.stem}'"
+    try:
+        raw = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    except Exception as exc:  # YAML syntax (yaml's own errors) or OmegaConf's
+        raise RecipeError(f"invalid {where}: {path} does not read as YAML: {str(exc).splitlines()[0]}") from exc
+    if not isinstance(raw, dict):
+        raise RecipeError(f"invalid {where}: {path} holds no mapping (a 'study:' and a 'recipe:' section)")
     spec, recipe = raw.get("study"), raw.get("recipe")
     if not isinstance(spec, dict) or not isinstance(recipe, dict):
         raise RecipeError(f"invalid {where}: a study file needs a 'study:' section and a 'recipe:' section")
@@ -136,16 +141,33 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
                               + (f"; unknown {', '.join(sorted(unknown))}" if unknown else ""))
         changes = {**(arm.get("set") or {}), **((arm.get("scales") or {}).get(scale) or {})}
         arms.append(Arm(arm["label"], changes, arm.get("paper")))
+    prepare = None
+    if spec.get("prepare") is not None:
+        changes = {**(spec["prepare"].get("set") or {}), **((spec["prepare"].get("scales") or {}).get(scale) or {})}
+        prepare = Arm(spec["prepare"].get("label", "prepare"), changes)
     if len({a.slug for a in arms}) != len(arms):
         raise RecipeError(f"invalid {where}: study.arms: two labels give the same directory name")
     return Study(path.stem, spec.get("title", path.stem), spec.get("paper", ""), spec.get("differs", ""),
-                 seeds, tuple(arms), recipe, scale)
+                 seeds, tuple(arms), recipe, scale, prepare)
 
 
-def arm_recipe(study: Study, arm: Arm) -> dict:
+PREPARE_DIR = "prepare"
+
+
+def prepare_recipe(study: Study) -> dict:
+    """The recipe of the study's preparatory run: the base with its keys set, at the first seed."""
+    assert study.prepare is not None
+    return {**merge_recipes(study.recipe, _dotted(study.prepare.set)), "name": f"{study.name}-{PREPARE_DIR}",
+            "seed": study.seeds[0]}
+
+
+def arm_recipe(study: Study, arm: Arm, root: Path = Path(STUDIES_DIR)) -> dict:
     """The recipe of one arm: the base with its keys set (a section given a new `name` is replaced,
-    as in any recipe), swept over the study's seeds."""
+    as in any recipe), swept over the study's seeds; with a preparatory run (in `root`), starting
+    from its best controller."""
     data = merge_recipes(study.recipe, _dotted(arm.set))
+    if study.prepare is not None:
+        data["init_controller"] = str(root / PREPARE_DIR)
     data["name"] = f"{study.name}-{arm.slug}"
     data["sweep"] = {"method": "grid", "metric": {"name": "best.episode_return", "goal": "maximize"},
                      "parameters": {"seed": {"values": list(study.seeds)}}}
@@ -163,8 +185,19 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
     """Run every arm (an arm already under way or done is continued, not restarted); then tabulate."""
     from codesign import sweep as sweeps
 
+    from codesign import runner
+
     root = study_dir(study, directory)
-    recipes = [resolve_recipe(arm_recipe(study, arm), default_name=arm.slug) for arm in study.arms]  # all checked first
+    recipes = [resolve_recipe(arm_recipe(study, arm, root), default_name=arm.slug) for arm in study.arms]  # all checked first
+    if study.prepare is not None:
+        prepared = root / PREPARE_DIR
+        if not sweeps.finished(prepared):
+            if progress:
+                print(f"[{study.name}] first: {study.prepare.label}", flush=True)
+            if (prepared / runner.CONFIG_FILE).is_file():
+                runner.resume(prepared, progress=progress)
+            else:
+                runner.run(resolve_recipe(prepare_recipe(study)), run_dir=prepared, progress=progress)
     for i, (arm, recipe) in enumerate(zip(study.arms, recipes)):
         arm_dir = root / arm.slug
         resume = (arm_dir / sweeps.SWEEP_FILE).is_file()

@@ -107,3 +107,31 @@ def test_every_shipped_study_resolves_every_arm_at_every_scale(path):
         assert len(study.seeds) >= (1 if scale == "tiny" else 3)
         for arm in study.arms:
             resolve_recipe(arm_recipe(study, arm), default_name=arm.slug)
+
+
+def test_init_controller_starts_the_controller_from_a_run_best_controller(tmp_path, toy_recipe, cli):
+    """A zero sine controller acts 0, which the toy rewards with exactly 0 when every target is 0;
+    the controller's own random start does worse. Parameters of another shape are an error."""
+    import torch
+
+    saved = tmp_path / "pretrained"
+    (saved / "best").mkdir(parents=True)
+    torch.save([torch.zeros(2, 2, 4), torch.zeros(2, 2, 4)], saved / "best" / "controller.pt")
+    recipe = {**toy_recipe, "environment": {"name": "toy", "target_range": 0.0}, "tracking": {"wandb_mode": "disabled"}}
+    for name, start, expected in (("own", None, "negative"), ("loaded", str(saved), "zero")):
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(yaml.safe_dump({**recipe, "init_controller": start}))
+        code, out, err = cli("run", str(path), "--run-dir", str(tmp_path / name), "--no-progress")
+        assert code == 0, err
+        best = json.loads((tmp_path / name / "summary.json").read_text())["best"]["episode_return"]
+        assert (best == 0.0) if expected == "zero" else (best < 0.0)
+    torch.save([torch.zeros(3)], saved / "best" / "controller.pt")
+    code, _, err = cli("run", str(tmp_path / "loaded.yaml"), "--run-dir", str(tmp_path / "bad"), "--no-progress")
+    assert code != 0 and "holds parameters of shapes [(3,)]" in err
+
+
+def test_a_study_with_a_preparatory_run_starts_every_arm_from_its_controller():
+    study = load_study("representations")
+    assert study.prepare is not None
+    for arm in study.arms:
+        assert arm_recipe(study, arm, Path("out"))["init_controller"] == str(Path("out") / "prepare")

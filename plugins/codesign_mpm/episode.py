@@ -51,8 +51,9 @@ def _tensor(value, shape) -> torch.Tensor:
 
 def design_inputs(env: LocomotionEnv, design: DesignFields) -> tuple[Particles, tuple[torch.Tensor, ...]]:
     """The design's particles (robot, then cover) and its differentiable per-particle inputs
-    (volume, Young's modulus, muscle, fibre), the cover's as constants."""
-    base, cover = env.base_particles, env.cover_particles
+    (volume, Young's modulus, muscle, fibre), the cover's (with what fills the design's empty
+    workspace) as constants."""
+    base = env.base_particles
     occupancy = _tensor(design.occupancy, (base.n,))
     mask = env.design_mask(occupancy.detach().numpy())
     particles = env.design_particles(design, mask)
@@ -63,7 +64,9 @@ def design_inputs(env: LocomotionEnv, design: DesignFields) -> tuple[Particles, 
         _tensor(design.muscle, base.muscle.shape)[keep],
         _tensor(design.fiber, (base.n, 3))[keep],
     )
-    constant = (cover.volume, cover.youngs_modulus, np.zeros((cover.n, base.n_actuators)), cover.fiber)
+    n = int(mask.sum())
+    constant = (particles.volume[n:], particles.youngs_modulus[n:], np.zeros((particles.n - n, base.n_actuators)),
+                particles.fiber[n:])
     inputs = tuple(torch.cat([r, torch.as_tensor(c, dtype=DTYPE)]) for r, c in zip(robot, constant))
     return particles, inputs
 

@@ -129,3 +129,29 @@ def test_a_design_smaller_than_its_workspace_sits_in_water_not_in_a_hole_that_ca
         assert np.linalg.norm(result.observation[:3] - start) < 0.025 * DX
     finally:
         env.close()
+
+
+def test_a_differentiable_episode_of_a_design_smaller_than_its_workspace_takes_the_fill_as_constants():
+    """The gradient path gets the fill too (it once built its inputs from the cover alone), and the
+    design's gradient reaches the occupancy of the particles it keeps."""
+    import torch
+
+    from codesign.interfaces import DesignFields
+    from codesign_basics.config import SineConfig
+    from codesign_basics.sine import SineController
+    from codesign_mpm.episode import run_episode
+
+    env = make_env("ocean", horizon=3, robot=RobotConfig(size=[0.3, 0.15, 0.15], youngs_modulus=1e5))
+    try:
+        base = env.base_particles
+        corner = (base.x[:, 0] < np.quantile(base.x[:, 0], 0.35)) & (base.x[:, 1] < np.quantile(base.x[:, 1], 0.5))
+        occupancy = torch.tensor(np.where(corner, 0.9, 0.1), requires_grad=True)
+        design = DesignFields(occupancy, np.full(base.n, 1e5), base.muscle, base.fiber)
+        controller = SineController(SineConfig())
+        controller.setup(env.action_dim, env.observation_dim, env.control_dt, np.random.default_rng(0))
+        episode = run_episode(env, design, controller)
+        (-episode.rewards.sum()).backward()
+        grad = occupancy.grad.numpy()
+        assert np.isfinite(grad).all() and np.abs(grad[corner]).max() > 0 and (grad[~corner] == 0).all()
+    finally:
+        env.close()
