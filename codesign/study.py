@@ -11,13 +11,14 @@ Markdown section saying whether the paper's ordering of the arms holds at this s
 from __future__ import annotations
 
 import csv
+import importlib
 import json
 import math
 import re
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from omegaconf import OmegaConf
 from scipy.stats import kendalltau
@@ -56,6 +57,8 @@ class Study:
     recipe: dict  # the base recipe, shared by every arm
     scale: str
     prepare: Arm | None = None  # a run made first (first seed), whose best controller every arm starts from
+    analysis: str | None = None  # "module:function" measuring one robot instead of arms (codesign_mpm.analyses)
+    parameters: dict = field(default_factory=dict)  # the analysis's own settings
 
 
 @dataclass(frozen=True)
@@ -122,8 +125,10 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
         base = compose(find_recipe(str(recipe.pop("base")), relative_to=path.parent))
         base.pop("name", None)
         recipe = merge_recipes(base, recipe)
-    if not spec.get("arms"):
-        raise RecipeError(f"invalid {where}: study.arms: empty; list the table's rows (label, set, paper)")
+    analysis = spec.get("analysis")
+    if not spec.get("arms") and analysis is None:
+        raise RecipeError(f"invalid {where}: study.arms: empty; list the table's rows (label, set, paper), or "
+                          f"name an analysis (study.analysis: module:function)")
     scales = spec.get("scales") or {}
     if scale != SCALE_DEFAULT and scale not in scales:
         raise RecipeError(f"invalid {where}: --scale {scale!r} is not a scale of this study; "
@@ -132,9 +137,11 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
     if scale != SCALE_DEFAULT:
         changes = dict(scales[scale])
         seeds = tuple(changes.pop("seeds", seeds))
+        changes.pop("parameters", None)
         recipe = merge_recipes(recipe, _dotted(changes))
     arms = []
-    for i, arm in enumerate(spec["arms"]):
+    parameters = {**(spec.get("parameters") or {}), **(scales.get(scale, {}).get("parameters") or {})}
+    for i, arm in enumerate(spec.get("arms") or []):
         unknown = set(arm) - {"label", "set", "paper", "scales"}
         if "label" not in arm or unknown:
             raise RecipeError(f"invalid {where}: study.arms[{i}]: needs 'label' and takes set, paper, scales"
@@ -148,7 +155,7 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
     if len({a.slug for a in arms}) != len(arms):
         raise RecipeError(f"invalid {where}: study.arms: two labels give the same directory name")
     return Study(path.stem, spec.get("title", path.stem), spec.get("paper", ""), spec.get("differs", ""),
-                 seeds, tuple(arms), recipe, scale, prepare)
+                 seeds, tuple(arms), recipe, scale, prepare, analysis, parameters)
 
 
 PREPARE_DIR = "prepare"
@@ -188,6 +195,10 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
     from codesign import runner
 
     root = study_dir(study, directory)
+    if study.analysis is not None:
+        findings = _analysis(study.analysis)(study, root, progress)
+        (root / "section.md").write_text(_heading(study) + findings.rstrip() + "\n" + _differs(study), encoding="utf-8")
+        return root
     recipes = [resolve_recipe(arm_recipe(study, arm, root), default_name=arm.slug) for arm in study.arms]  # all checked first
     if study.prepare is not None:
         prepared = root / PREPARE_DIR
@@ -296,16 +307,29 @@ def plot(study: Study, rows: list[Row], path: Path) -> Path:
     return path
 
 
-def section(study: Study, rows: list[Row], image: str) -> str:
-    return "\n\n".join([
-        f"## {study.title}",
-        f"`codesign study {study.name}`" + ("" if study.scale == SCALE_DEFAULT else f" --scale {study.scale}")
-        + f": {len(study.seeds)} seed{'s' if len(study.seeds) > 1 else ''} per arm. Paper: {study.paper}",
-        table_markdown(rows),
-        verdict(rows),
-        f"![{study.name}]({image})",
-        f"What differs from the paper: {study.differs}" if study.differs else "",
-    ]).rstrip() + "\n"
+def _analysis(ref: str) -> Callable[[Study, Path, bool], str]:
+    """The analysis function named `module:function`."""
+    module, _, function = ref.partition(":")
+    try:
+        return getattr(importlib.import_module(module), function)
+    except (ImportError, AttributeError) as exc:
+        raise RecipeError(f"invalid study: study.analysis: {ref!r} names no function ({exc}); "
+                          f"give it as module:function, e.g. codesign_mpm.analyses:loss_landscape") from exc
+
+
+def _heading(study: Study) -> str:
+    command = f"`codesign study {study.name}`" + ("" if study.scale == SCALE_DEFAULT else f" --scale {study.scale}")
+    count = "" if study.analysis else f": {len(study.seeds)} seed{'s' if len(study.seeds) > 1 else ''} per arm"
+    return f"## {study.title}\n\n{command}{count}. Paper: {study.paper}\n\n"
+
+
+def _differs(study: Study) -> str:
+    return f"\nWhat differs from the paper: {study.differs}\n" if study.differs else ""
+
+
+def section(study: Study, rows: list[Row]) -> str:
+    body = "\n\n".join([table_markdown(rows), verdict(rows), f"![{study.name}]({study.name}.png)"])
+    return _heading(study) + body + "\n" + _differs(study)
 
 
 def write_results(study: Study, root: Path) -> list[Row]:
@@ -319,17 +343,18 @@ def write_results(study: Study, root: Path) -> list[Row]:
                           list(r.wall_time)])
     (root / "table.md").write_text(table_markdown(rows) + "\n", encoding="utf-8")
     plot(study, rows, root / f"{study.name}.png")
-    (root / "section.md").write_text(section(study, rows, f"{study.name}.png"), encoding="utf-8")
+    (root / "section.md").write_text(section(study, rows), encoding="utf-8")
     return rows
 
 
 def publish(study: Study, root: Path, repo: Path = Path(".")) -> Path:
     """Put the study's section into docs/studies.md (replacing its earlier one) and its chart into docs/images."""
-    rows = collect(study, root)
     images = repo / DOCS_IMAGES
     images.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(root / f"{study.name}.png", images / f"{study.name}.png")
-    text = section(study, rows, f"images/studies/{study.name}.png")
+    text = (root / "section.md").read_text(encoding="utf-8")
+    for chart in sorted(root.glob(f"{study.name}*.png")):  # the study's charts, as its section names them
+        shutil.copyfile(chart, images / chart.name)
+        text = text.replace(f"]({chart.name})", f"](images/studies/{chart.name})")
     begin, end = f"<!-- study:{study.name} -->", f"<!-- /study:{study.name} -->"
     page = repo / DOCS_PAGE
     current = page.read_text(encoding="utf-8") if page.is_file() else "# The paper's studies\n"

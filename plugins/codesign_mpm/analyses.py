@@ -1,0 +1,254 @@
+"""The paper's two analyses as studies (`codesign study loss_landscape`, `codesign study
+muscle_ambiguity`): not tables of arms but measurements of one robot, run by `codesign.study`.
+
+Each takes the study (its base recipe gives the environment and the controller; `study.parameters`
+the rest) and the study's directory, appends one JSON line per measured point to `points.jsonl`
+(a killed analysis continues after the last point written), draws its chart and returns the
+Markdown of its findings.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from codesign.artifacts import play
+from codesign.interfaces import DesignFields
+from codesign.progress import progress_bar
+from codesign.recipe import resolve_recipe
+from codesign.runner import build_parts, seed_everything
+
+POINTS = "points.jsonl"
+
+
+def _points(root: Path) -> list[dict]:
+    path = root / POINTS
+    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()] if path.is_file() else []
+
+
+def _measure(root: Path, keys: list[Any], measure: Callable[[Any], dict], progress: bool, desc: str) -> list[dict]:
+    """`measure(key)` for every key not yet in points.jsonl (appended as it goes); all points, in key order."""
+    done = {json.dumps(p["key"]): p for p in _points(root)}
+    todo = [k for k in keys if json.dumps(k) not in done]
+    root.mkdir(parents=True, exist_ok=True)
+    with progress_bar(total=len(keys), initial=len(keys) - len(todo), desc=desc, unit="point", show=progress) as bar:
+        for key in todo:
+            point = {"key": key, **measure(key)}
+            with open(root / POINTS, "a", encoding="utf-8") as f:
+                f.write(json.dumps(point) + "\n")
+            done[json.dumps(key)] = point
+            bar.update(1)
+    return [done[json.dumps(k)] for k in keys]
+
+
+def _setup(study) -> tuple[Any, Any, DesignFields]:
+    """The study's environment and controller (seeded as a run of its recipe would be), and the
+    full workspace as a design: every particle occupied, the workspace's own stiffness and muscles."""
+    recipe = resolve_recipe({**study.recipe, "optimizer": {"name": "evaluate"}}, default_name=study.name)
+    parts = build_parts(recipe)
+    rng = seed_everything(recipe.seed)
+    env, controller = parts.environment, parts.controller
+    controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
+    space = env.design_space
+    n = len(space.points)
+    full = DesignFields(np.ones(n), np.full(n, space.default_stiffness), space.muscle.copy(), space.fiber.copy())
+    return env, controller, full
+
+
+def _plot(path: Path, title: str, draw: Callable[[Any], None]) -> None:
+    from codesign.plots import _pyplot
+
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5.5, 3.2), constrained_layout=True)
+    draw(ax)
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def loss_landscape(study, root: Path, progress: bool = True) -> str:
+    """The loss (minus the return) along one actuator-placement parameter, and against the size of a
+    corner cut from the body.
+
+    Placement: the particles of one voxel of the workspace (a cell of a `voxels` grid) belong to
+    actuator `from` with weight 1 - s and to actuator `to` with weight s (soft placement, as in the
+    paper); s runs over [0, 1]. Shape: a cube of edge c (a fraction of the workspace's height) is
+    removed from the workspace's `corner`, c from 0 up.
+    """
+    params = study.parameters
+    env, controller, full = _setup(study)
+    points = env.design_space.points
+    lo, hi = points.min(0), points.max(0)
+    cell = np.floor((points - lo) / (hi - lo + 1e-12) * np.asarray(params["voxels"])).astype(int)
+    voxel = np.all(cell == np.asarray(params["voxel"]), axis=1)
+    a, b = params["from"], params["to"]
+
+    def placement(s: float) -> dict:
+        muscle = full.muscle.copy()
+        muscle[voxel] = 0.0
+        muscle[voxel, a], muscle[voxel, b] = 1.0 - s, s
+        record = play(env, DesignFields(full.occupancy, full.stiffness, muscle, full.fiber), controller)
+        return {"loss": -record.episode_return, "torn": record.metrics.get("torn_fraction", float("nan"))}
+
+    corner = np.asarray(params["corner"], dtype=float)  # 0 or 1 per axis: which corner of the workspace
+
+    def cut(c: float) -> dict:
+        edge = c * (hi[1] - lo[1])
+        near = np.where(corner > 0, hi - points < edge, points - lo < edge)
+        occupancy = np.where(near.all(axis=1), 0.0, 1.0)
+        record = play(env, DesignFields(occupancy, full.stiffness, full.muscle, full.fiber), controller)
+        return {"loss": -record.episode_return, "removed": float(1.0 - occupancy.mean()),
+                "com": record.com.tolist(), "torn": record.metrics.get("torn_fraction", float("nan"))}
+
+    s_values = [round(float(s), 6) for s in np.linspace(0.0, 1.0, params["points"])]
+    c_values = [round(float(c), 6) for c in params["corners"]]
+    try:
+        placed = _measure(root / "placement", s_values, placement, progress, "placement")
+        cuts = _measure(root / "corner", c_values, cut, progress, "corner")
+    finally:
+        env.close()
+    loss = np.array([p["loss"] for p in placed])
+    minima = [i for i in range(len(loss)) if (i == 0 or loss[i] < loss[i - 1]) and (i == len(loss) - 1 or loss[i] < loss[i + 1])]
+
+    def draw_placement(ax) -> None:
+        ax.plot(s_values, loss, marker=".")
+        ax.scatter([s_values[i] for i in minima], loss[minima], color="tab:red", zorder=3, label="local minima")
+        ax.set_xlabel(f"membership of voxel {params['voxel']} in actuator {b} (1 - s in actuator {a})")
+        ax.set_ylabel("loss (minus return)")
+        ax.legend(fontsize=8)
+
+    def draw_corner(ax) -> None:
+        for point in cuts:
+            com = np.asarray(point["com"])
+            ax.plot(np.arange(1, len(com) + 1) * env.control_dt, com[:, 0] - com[0, 0],
+                    label=f"corner {point['key']:.2f} ({point['removed']:.1%} removed)")
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("centre of mass x - x(first step)")
+        ax.legend(fontsize=7)
+
+    _plot(root / f"{study.name}.png", "loss along one actuator-placement parameter", draw_placement)
+    _plot(root / f"{study.name}_corner.png", "a box and the same box missing a corner", draw_corner)
+    full_loss = cuts[0]["loss"]
+    corner_rows = "\n".join(f"| {p['key']:.2f} | {p['removed']:.1%} | {p['loss']:.4f} | {p['loss'] - full_loss:+.4f} |"
+                            for p in cuts)
+    return "\n\n".join([
+        f"Placement: {len(s_values)} values of s, {len(minima)} local minim{'um' if len(minima) == 1 else 'a'} "
+        f"(at s = {', '.join(f'{s_values[i]:.3f}' for i in minima)}); the loss spans "
+        f"{loss.min():.4f} to {loss.max():.4f}. A gradient step from s = 0 or s = 1 finds the minimum of its own "
+        f"basin, not the lowest one, where there are several.",
+        f"![placement]({study.name}.png)",
+        "Shape: a cube cut from the workspace's corner " + str(params["corner"]) + ", its edge a fraction of the "
+        "workspace's height (the same gait):",
+        "| corner edge | mass removed | loss | against the full box |\n| --- | --- | --- | --- |\n" + corner_rows,
+        f"![corner]({study.name}_corner.png)",
+    ])
+
+
+def muscle_ambiguity(study, root: Path, progress: bool = True) -> str:
+    """Can control make up for stiffness, or for where the muscles are? A target robot acts a random
+    gait: the workspace with every particle's stiffness times m (for each multiplier m), or with its
+    muscles placed at random (each cell of a `voxels` grid given to a random actuator). The robot of
+    the original stiffness and muscles then fits its actions (trajectory optimisation: per-step
+    actions, Adam through the differentiable simulator, on the squared distance of corresponding
+    particles) to reproduce the target's final frame. Reported: the earth mover's distance between
+    the two final particle sets (POT, exact), relative to the distance the target's particles
+    moved, per target and seed."""
+    import ot
+    import torch
+
+    from codesign_mpm.bridge import simulate
+    from codesign_mpm.episode import design_inputs
+
+    params = study.parameters
+    env, _, full = _setup(study)
+    T, K, bound = env.horizon, env.action_dim, params["bound"]
+
+    def final_x(design: DesignFields, actions: np.ndarray) -> np.ndarray:
+        env.reset(design=design)
+        for action in actions:
+            env.step(action)
+        return env.sim.particles_state()[0][:n_robot].astype(np.float64)
+
+    n_robot = len(full.occupancy)  # the full workspace: no particle is dropped, the rows correspond
+
+    def emd(a: np.ndarray, b: np.ndarray) -> float:
+        w = np.full(len(a), 1.0 / len(a))
+        return float(math.sqrt(ot.emd2(w, w, ot.dist(a, b))))  # the W2 distance of equal-mass particles
+
+    points = env.design_space.points
+    lo, hi = points.min(0), points.max(0)
+    cells = np.floor((points - lo) / (hi - lo + 1e-12) * np.asarray(params["voxels"])).astype(int)
+    cell_id = np.unique(cells, axis=0, return_inverse=True)[1].ravel()
+
+    def target_design(kind: str, multiplier: float, rng: np.random.Generator) -> DesignFields:
+        if kind == "stiffness":
+            return DesignFields(full.occupancy, full.stiffness * multiplier, full.muscle, full.fiber)
+        owner = rng.integers(0, K, cell_id.max() + 1)[cell_id]  # one actuator per voxel
+        return DesignFields(full.occupancy, full.stiffness, np.eye(K)[owner], full.fiber)
+
+    def fit(key: list) -> dict:
+        kind, multiplier, seed = key
+        rng = np.random.default_rng(seed)
+        signal = rng.normal(0.0, 1.0, (T, K))
+        target_actions = bound * np.tanh(signal)
+        start = points
+        target = final_x(target_design(kind, multiplier, rng), target_actions)
+        particles, inputs = design_inputs(env, full)
+        raw = torch.tensor(signal, requires_grad=True)  # the fit starts from the target's own actions ('unfitted')
+        adam = torch.optim.Adam([raw], lr=params["lr"])
+        goal = torch.as_tensor(target)
+        for _ in range(params["iterations"]):
+            adam.zero_grad()
+            sim = env.grad_simulator(particles)  # back to the design's initial state
+            x = simulate(sim, bound * torch.tanh(raw), volume=inputs[0], youngs_modulus=inputs[1],
+                         muscle=inputs[2], fiber=inputs[3])[2][:n_robot]
+            loss = ((x - goal) ** 2).sum(1).mean()
+            loss.backward()
+            adam.step()
+        fitted = final_x(full, (bound * torch.tanh(raw)).detach().numpy())
+        moved = emd(start, target)
+        return {"emd": emd(fitted, target), "moved": moved, "unfitted": emd(final_x(full, target_actions), target)}
+
+    keys = [["stiffness", float(m), s] for m in params["multipliers"] for s in range(params["seeds"])]
+    keys += [["placement", 1.0, s] for s in range(params["seeds"])]
+    try:
+        measured = _measure(root, keys, fit, progress, "fit")
+    finally:
+        env.close()
+    targets = list(dict.fromkeys((p["key"][0], p["key"][1]) for p in measured))
+    by_target = {t: [p for p in measured if (p["key"][0], p["key"][1]) == t] for t in targets}
+    names = [f"x{m:g}" if kind == "stiffness" else "random muscles" for kind, m in targets]
+
+    def relative(p: dict, what: str) -> float:
+        return p[what] / p["moved"] if p["moved"] > 0 else float("nan")
+
+    def values(t, what: str) -> list[float]:
+        return [relative(p, what) for p in by_target[t]]
+
+    def draw(ax) -> None:
+        ax.boxplot([values(t, "emd") for t in targets])
+        ax.set_xticks(range(1, len(targets) + 1), names)
+        ax.plot(range(1, len(targets) + 1), [np.mean(values(t, "unfitted")) for t in targets], color="tab:gray",
+                linestyle="--", marker="x", label="target's own actions, not fitted")
+        ax.set_xlabel("target robot: stiffness multiplier, or random muscle placement")
+        ax.set_ylabel("EMD of final frames / target's motion")
+        ax.legend(fontsize=8)
+
+    _plot(root / f"{study.name}.png", "fitting control to another body", draw)
+
+    def spread(v: list[float]) -> str:
+        return f"{np.std(v, ddof=1):.3f}" if len(v) > 1 else "-"
+
+    rows = "\n".join(f"| {name} | {np.mean(values(t, 'emd')):.3f} | {spread(values(t, 'emd'))} | "
+                     f"{np.mean(values(t, 'unfitted')):.3f} | {len(by_target[t])} |" for name, t in zip(names, targets))
+    return "\n\n".join([
+        "Relative matching error: the earth mover's distance between the fitted robot's and the target's final "
+        "particles, divided by how far the target's particles moved from the start (EMD of start and end). "
+        "'Unfitted' replays the target's own actions on the original robot, the error before fitting:",
+        "| target | fitted: mean | std | unfitted: mean | seeds |\n| --- | --- | --- | --- | --- |\n" + rows,
+        f"![ambiguity]({study.name}.png)",
+    ])
