@@ -221,17 +221,17 @@ def merge_recipes(base: Mapping[str, Any], child: Mapping[str, Any]) -> dict:
         renamed = key in KINDS and isinstance(value, Mapping) and "name" in value and isinstance(old, Mapping) \
             and value["name"] != old.get("name")
         if isinstance(old, Mapping) and isinstance(value, Mapping) and not renamed:
-            out[key] = _deep_merge(old, value)
+            out[key] = deep_merge(old, value)
         else:
             out[key] = value
     return out
 
 
-def _deep_merge(base: Mapping, child: Mapping) -> dict:
+def deep_merge(base: Mapping, child: Mapping) -> dict:
     out = dict(base)
     for key, value in child.items():
         old = out.get(key)
-        out[key] = _deep_merge(old, value) if isinstance(old, Mapping) and isinstance(value, Mapping) else value
+        out[key] = deep_merge(old, value) if isinstance(old, Mapping) and isinstance(value, Mapping) else value
     return out
 
 

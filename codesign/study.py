@@ -10,8 +10,10 @@ Markdown section saying whether the paper's ordering of the arms holds at this s
 """
 from __future__ import annotations
 
+import copy
 import csv
 import importlib
+import itertools
 import json
 import math
 import re
@@ -24,7 +26,7 @@ from omegaconf import OmegaConf
 from scipy.stats import kendalltau
 
 from codesign.errors import CodesignError, RecipeError
-from codesign.recipe import RECIPES_DIR, compose, find_recipe, merge_recipes, resolve_recipe
+from codesign.recipe import RECIPES_DIR, deep_merge, compose, find_recipe, merge_recipes, resolve_recipe
 
 STUDIES_DIR = "studies"  # under recipes/
 BEST_INFO = Path("best") / "info.json"
@@ -83,15 +85,47 @@ class Row:
 
 
 def _dotted(items: Mapping[str, Any]) -> dict:
-    """{'a.b': 1} -> {'a': {'b': 1}}."""
+    """{'a.b': 1} -> {'a': {'b': 1}} (values copied: the study's own data stays as read)."""
     nested: dict = {}
     for key, value in items.items():
         node = nested
         *parents, last = str(key).split(".")
         for part in parents:
             node = node.setdefault(part, {})
-        node[last] = value
+        node[last] = copy.deepcopy(value)
     return nested
+
+
+def _grid_arms(grid: list, paper_table: Mapping, scale: str, where: str) -> list[dict]:
+    """Arms for every combination of the grid's dimensions (each a list of {label, set, scales,
+    only}; a later dimension's keys win), labelled "a / b / ...", with the paper's number looked up
+    in the nested `paper_table` by the labels in order (the last level may be a list, one number
+    per label). A value with `only: [scales]` joins the grid at those scales alone."""
+    arms = []
+    for combination in itertools.product(*grid):
+        if any(scale not in c.get("only", [scale]) for c in combination):
+            continue
+        labels = [c["label"] for c in combination]
+        node: Any = paper_table
+        for i, label in enumerate(labels):
+            if isinstance(node, list):
+                node = node[[c["label"] for c in grid[i]].index(label)] if len(node) == len(grid[i]) else None
+            elif isinstance(node, Mapping):
+                node = node.get(label)
+            else:
+                node = None
+        arm = {"label": " / ".join(labels), "set": {k: v for c in combination for k, v in (c.get("set") or {}).items()},
+               "paper": node if isinstance(node, (int, float)) else None}
+        scales: dict = {}
+        for c in combination:
+            for name, changes in (c.get("scales") or {}).items():
+                scales.setdefault(name, {}).update(changes)
+        if scales:
+            arm["scales"] = scales
+        arms.append(arm)
+    if not arms:
+        raise RecipeError(f"invalid {where}: study.grid: a dimension is empty")
+    return arms
 
 
 def find_study(ref: str) -> Path:
@@ -126,6 +160,10 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
         base.pop("name", None)
         recipe = merge_recipes(base, recipe)
     analysis = spec.get("analysis")
+    if spec.get("grid"):
+        if spec.get("arms"):
+            raise RecipeError(f"invalid {where}: study.arms and study.grid: give one of them")
+        spec = {**spec, "arms": _grid_arms(spec["grid"], spec.get("paper_table") or {}, scale, where)}
     if not spec.get("arms") and analysis is None:
         raise RecipeError(f"invalid {where}: study.arms: empty; list the table's rows (label, set, paper), or "
                           f"name an analysis (study.analysis: module:function)")
@@ -172,7 +210,11 @@ def arm_recipe(study: Study, arm: Arm, root: Path = Path(STUDIES_DIR)) -> dict:
     """The recipe of one arm: the base with its keys set (a section given a new `name` is replaced,
     as in any recipe), swept over the study's seeds; with a preparatory run (in `root`), starting
     from its best controller."""
-    data = merge_recipes(study.recipe, _dotted(arm.set))
+    changes = _dotted(arm.set)
+    environment = changes.get("environment")
+    if isinstance(environment, dict) and "name" in environment:  # presets share one schema: keep the base's keys
+        changes["environment"] = deep_merge(study.recipe.get("environment") or {}, environment)
+    data = merge_recipes(study.recipe, changes)
     if study.prepare is not None:
         data["init_controller"] = str(root / PREPARE_DIR)
     data["name"] = f"{study.name}-{arm.slug}"
