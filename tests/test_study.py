@@ -135,3 +135,40 @@ def test_a_study_with_a_preparatory_run_starts_every_arm_from_its_controller():
     assert study.prepare is not None
     for arm in study.arms:
         assert arm_recipe(study, arm, Path("out"))["init_controller"] == str(Path("out") / "prepare")
+
+
+def test_a_grid_makes_an_arm_per_combination_with_the_paper_number_and_only_its_scales(tmp_path, toy_recipe):
+    study = {
+        "study": {"title": "grid", "seeds": [0],
+                  "grid": [[{"label": "A", "set": {"controller.bound": 0.1}},
+                            {"label": "B", "set": {"controller.bound": 0.2}, "only": ["paper"]}],
+                           [{"label": "x", "set": {"optimizer.episodes": 1}},
+                            {"label": "y", "set": {"optimizer.episodes": 2}, "scales": {"paper": {"optimizer.episodes": 9}}}]],
+                  "paper_table": {"A": [0.1, 0.2], "B": {"x": 0.3}},
+                  "scales": {"paper": {}}},
+        "recipe": toy_recipe,
+    }
+    path = tmp_path / "grid.yaml"
+    path.write_text(yaml.safe_dump(study))
+    cpu = load_study(str(path))
+    assert [(a.label, a.paper) for a in cpu.arms] == [("A / x", 0.1), ("A / y", 0.2)]
+    paper = load_study(str(path), "paper")
+    assert [(a.label, a.paper) for a in paper.arms] == [("A / x", 0.1), ("A / y", 0.2), ("B / x", 0.3), ("B / y", None)]
+    assert arm_recipe(paper, paper.arms[3])["optimizer"]["episodes"] == 9
+    assert arm_recipe(paper, paper.arms[3])["controller"]["bound"] == 0.2
+
+
+
+def test_arms_sharing_a_section_value_do_not_change_each_other(tmp_path, toy_recipe):
+    """A section given whole (a dict) and a dotted key into it, as a grid's scales give them."""
+    shared = {"name": "evaluate", "episodes": 1}
+    study = {"study": {"title": "t", "seeds": [0],
+                       "grid": [[{"label": "A", "scales": {"paper": {"optimizer.episodes": 7}}}, {"label": "B"}],
+                                [{"label": "x", "set": {"optimizer": shared}}]],
+                       "scales": {"paper": {}}},
+             "recipe": toy_recipe}
+    path = tmp_path / "shared.yaml"
+    path.write_text(yaml.safe_dump(study))
+    paper = load_study(str(path), "paper")
+    assert arm_recipe(paper, paper.arms[0])["optimizer"]["episodes"] == 7
+    assert arm_recipe(paper, paper.arms[1])["optimizer"]["episodes"] == 1
