@@ -18,6 +18,7 @@ import json
 import math
 import re
 import shutil
+import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -74,14 +75,12 @@ class Row:
 
     @property
     def mean(self) -> float:
-        return sum(self.per_step) / len(self.per_step)
+        return statistics.fmean(self.per_step)
 
     @property
     def std(self) -> float:
-        n = len(self.per_step)
-        if n < 2:
-            return float("nan")
-        return math.sqrt(sum((v - self.mean) ** 2 for v in self.per_step) / (n - 1))
+        """Over seeds (n - 1); nan for one seed."""
+        return statistics.stdev(self.per_step) if len(self.per_step) > 1 else float("nan")
 
 
 def _dotted(items: Mapping[str, Any]) -> dict:
