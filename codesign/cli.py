@@ -115,13 +115,22 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
                                                                      "with -SCALE for other scales); continued if it exists."),
         docs: bool = typer.Option(False, "--docs", help="Also write its section into docs/studies.md and its chart "
                                                         "into docs/images/studies/."),
+        report: bool = typer.Option(False, "--report", help="Run nothing: write the table of the runs finished so "
+                                                            "far (a study under way, in --dir or its default)."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
     ) -> None:
         """Run one of the paper's studies (every arm x seed, continuing a killed one) and print its table."""
         from codesign import study as studies
 
         spec = studies.load_study(name, scale)
-        directory = studies.run_study(spec, study_dir, progress=not no_progress)
+        if report and spec.analysis is not None:
+            raise CodesignError(f"--report: {name} is an analysis, which writes its findings when it runs; run it "
+                                f"again (it continues from its last point)")
+        if report:
+            directory = studies.study_dir(spec, study_dir)
+            studies.write_results(spec, directory)
+        else:
+            directory = studies.run_study(spec, study_dir, progress=not no_progress)
         if docs:
             _stderr.print(f"wrote {studies.publish(spec, directory)}", markup=False, highlight=False)
         _stderr.print((directory / "section.md").read_text(encoding="utf-8"), markup=False, highlight=False,

@@ -262,15 +262,15 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
 
 
 def collect(study: Study, root: Path) -> list[Row]:
-    """Each arm's per-step return, torn-off mass and wall time over the seeds of its finished runs."""
+    """Each arm's per-step return, torn-off mass and wall time over the seeds of its finished runs
+    (arms with none yet are left out: a study under way can be reported)."""
     from codesign import sweep as sweeps
 
     rows = []
     for arm in study.arms:
         runs = [d for d in sorted((root / arm.slug).glob("t*-seed*")) if sweeps.finished(d)]
         if not runs:
-            raise CodesignError(f"study {study.name}: arm {arm.label!r} has no finished run in {root / arm.slug}; "
-                                f"run `codesign study {study.name}` to (re)start it")
+            continue
         per_step, torn, wall = [], [], []
         for run in runs:
             horizon = OmegaConf.load(run / "config.yaml").environment.horizon
@@ -280,6 +280,9 @@ def collect(study: Study, root: Path) -> list[Row]:
             torn.append(info.get("torn_fraction", float("nan")))  # the best episode's (environments with bodies)
             wall.append(summary["wall_time"])
         rows.append(Row(arm, tuple(per_step), tuple(torn), tuple(wall)))
+    if not rows:
+        raise CodesignError(f"study {study.name}: no arm has a finished run in {root}; "
+                            f"run `codesign study {study.name}` to (re)start it")
     return rows
 
 
@@ -369,7 +372,12 @@ def _differs(study: Study) -> str:
 
 
 def section(study: Study, rows: list[Row]) -> str:
-    body = "\n\n".join([table_markdown(rows), verdict(rows), f"![{study.name}]({study.name}.png)"])
+    parts = [table_markdown(rows), verdict(rows), f"![{study.name}]({study.name}.png)"]
+    runs = sum(len(r.per_step) for r in rows)
+    if runs < len(study.arms) * len(study.seeds):
+        parts.insert(0, f"**Under way**: {runs} of {len(study.arms) * len(study.seeds)} runs finished "
+                        f"({len(rows)} of {len(study.arms)} arms have at least one).")
+    body = "\n\n".join(parts)
     return _heading(study) + body + "\n" + _differs(study)
 
 

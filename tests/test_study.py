@@ -172,3 +172,13 @@ def test_arms_sharing_a_section_value_do_not_change_each_other(tmp_path, toy_rec
     paper = load_study(str(path), "paper")
     assert arm_recipe(paper, paper.arms[0])["optimizer"]["episodes"] == 7
     assert arm_recipe(paper, paper.arms[1])["optimizer"]["episodes"] == 1
+
+
+def test_a_study_under_way_reports_its_finished_arms(tmp_path, toy_study, cli):
+    cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
+    for run in (tmp_path / "s" / "tight_bound").glob("t*-seed*"):
+        (run / "summary.json").unlink()  # as if never finished
+    code, _, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--report")
+    assert code == 0, err
+    section = (tmp_path / "s" / "section.md").read_text()
+    assert "**Under way**: 2 of 4 runs finished (1 of 2 arms" in section and "Tight bound" not in section
