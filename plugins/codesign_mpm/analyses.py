@@ -71,26 +71,30 @@ def _plot(path: Path, title: str, draw: Callable[[Any], None]) -> None:
 
 
 def loss_landscape(study, root: Path, progress: bool = True) -> str:
-    """The loss (minus the return) along one actuator-placement parameter, and against the size of a
+    """The loss (minus the return) along actuator-placement parameters, and against the size of a
     corner cut from the body.
 
     Placement: the particles of one voxel of the workspace (a cell of a `voxels` grid) belong to
-    actuator `from` with weight 1 - s and to actuator `to` with weight s (soft placement, as in the
-    paper); s runs over [0, 1]. Shape: a cube of edge c (a fraction of the workspace's height) is
-    removed from the workspace's `corner`, c from 0 up.
+    their own actuator with weight 1 - s and to another actuator with weight s (soft placement, as
+    in the paper); s runs over [0, 1], for every voxel and every other actuator. Shape: a cube of
+    edge c (a fraction of the workspace's height) is removed from the workspace's `corner`.
     """
     params = study.parameters
     env, controller, full = _setup(study)
     points = env.design_space.points
     lo, hi = points.min(0), points.max(0)
-    cell = np.floor((points - lo) / (hi - lo + 1e-12) * np.asarray(params["voxels"])).astype(int)
-    voxel = np.all(cell == np.asarray(params["voxel"]), axis=1)
-    a, b = params["from"], params["to"]
+    cells = np.floor((points - lo) / (hi - lo + 1e-12) * np.asarray(params["voxels"])).astype(int)
+    voxels = [tuple(int(i) for i in v) for v in np.unique(cells, axis=0)]
+    members = {v: np.all(cells == np.asarray(v), axis=1) for v in voxels}
+    own = {v: int(np.bincount(full.muscle[members[v]].argmax(1), minlength=env.action_dim).argmax()) for v in voxels}
+    curves = [(v, to) for v in voxels for to in range(env.action_dim) if to != own[v]]
 
-    def placement(s: float) -> dict:
+    def placement(key: list) -> dict:
+        *v, to, s = key
+        v = tuple(v)
         muscle = full.muscle.copy()
-        muscle[voxel] = 0.0
-        muscle[voxel, a], muscle[voxel, b] = 1.0 - s, s
+        muscle[members[v]] = 0.0
+        muscle[members[v], own[v]], muscle[members[v], to] = 1.0 - s, s
         record = play(env, DesignFields(full.occupancy, full.stiffness, muscle, full.fiber), controller)
         return {"loss": -record.episode_return, "torn": record.metrics.get("torn_fraction", float("nan"))}
 
@@ -105,19 +109,34 @@ def loss_landscape(study, root: Path, progress: bool = True) -> str:
                 "com": record.com.tolist(), "torn": record.metrics.get("torn_fraction", float("nan"))}
 
     s_values = [round(float(s), 6) for s in np.linspace(0.0, 1.0, params["points"])]
+    keys = [[*v, to, s] for v, to in curves for s in s_values]
     c_values = [round(float(c), 6) for c in params["corners"]]
     try:
-        placed = _measure(root / "placement", s_values, placement, progress, "placement")
+        placed = _measure(root / "placement", keys, placement, progress, "placement")
         cuts = _measure(root / "corner", c_values, cut, progress, "corner")
     finally:
         env.close()
-    loss = np.array([p["loss"] for p in placed])
-    minima = [i for i in range(len(loss)) if (i == 0 or loss[i] < loss[i - 1]) and (i == len(loss) - 1 or loss[i] < loss[i + 1])]
+    losses = np.array([p["loss"] for p in placed]).reshape(len(curves), len(s_values))
+
+    def local_minima(loss: np.ndarray) -> list[int]:
+        """Interior and end points lower than their neighbours (by more than float32 noise)."""
+        tol = 1e-6 * max(1.0, float(np.abs(loss).max()))
+        return [i for i in range(len(loss)) if (i == 0 or loss[i] < loss[i - 1] - tol)
+                and (i == len(loss) - 1 or loss[i] < loss[i + 1] - tol)]
+
+    minima = [local_minima(loss) for loss in losses]
+    several = [i for i, m in enumerate(minima) if len(m) > 1]
+    shown = max(range(len(curves)), key=lambda i: (len(minima[i]), np.ptp(losses[i])))
 
     def draw_placement(ax) -> None:
-        ax.plot(s_values, loss, marker=".")
-        ax.scatter([s_values[i] for i in minima], loss[minima], color="tab:red", zorder=3, label="local minima")
-        ax.set_xlabel(f"membership of voxel {params['voxel']} in actuator {b} (1 - s in actuator {a})")
+        for loss in losses:
+            ax.plot(s_values, loss, color="tab:gray", linewidth=0.5, alpha=0.5)
+        (v, to) = curves[shown]
+        ax.plot(s_values, losses[shown], color="tab:blue", marker=".",
+                label=f"voxel {list(v)}: actuator {own[v]} -> {to}")
+        ax.scatter([s_values[i] for i in minima[shown]], losses[shown][minima[shown]], color="tab:red", zorder=3,
+                   label="its local minima")
+        ax.set_xlabel("s: a voxel's membership moved from its own actuator to another")
         ax.set_ylabel("loss (minus return)")
         ax.legend(fontsize=8)
 
@@ -130,16 +149,18 @@ def loss_landscape(study, root: Path, progress: bool = True) -> str:
         ax.set_ylabel("centre of mass x - x(first step)")
         ax.legend(fontsize=7)
 
-    _plot(root / f"{study.name}.png", "loss along one actuator-placement parameter", draw_placement)
+    _plot(root / f"{study.name}.png", "loss along actuator-placement parameters", draw_placement)
     _plot(root / f"{study.name}_corner.png", "a box and the same box missing a corner", draw_corner)
     full_loss = cuts[0]["loss"]
     corner_rows = "\n".join(f"| {p['key']:.2f} | {p['removed']:.1%} | {p['loss']:.4f} | {p['loss'] - full_loss:+.4f} |"
                             for p in cuts)
+    v, to = curves[shown]
     return "\n\n".join([
-        f"Placement: {len(s_values)} values of s, {len(minima)} local minim{'um' if len(minima) == 1 else 'a'} "
-        f"(at s = {', '.join(f'{s_values[i]:.3f}' for i in minima)}); the loss spans "
-        f"{loss.min():.4f} to {loss.max():.4f}. A gradient step from s = 0 or s = 1 finds the minimum of its own "
-        f"basin, not the lowest one, where there are several.",
+        f"Placement: {len(curves)} parameters (each of the {len(voxels)} voxels of a {params['voxels']} grid moved "
+        f"from its own actuator to each other one), {len(s_values)} values of s each. {len(several)} of them have "
+        f"more than one local minimum; drawn in blue, voxel {list(v)} moved from actuator {own[v]} to {to} "
+        f"({len(minima[shown])} minima, loss {losses[shown].min():.4f} to {losses[shown].max():.4f}). Along a "
+        "parameter with several minima, gradient descent ends in the basin it starts in.",
         f"![placement]({study.name}.png)",
         "Shape: a cube cut from the workspace's corner " + str(params["corner"]) + ", its edge a fraction of the "
         "workspace's height (the same gait):",
