@@ -19,6 +19,7 @@ import math
 import re
 import shutil
 import statistics
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -231,9 +232,7 @@ def study_dir(study: Study, directory: str | Path | None) -> Path:
 
 def run_study(study: Study, directory: str | Path | None = None, *, progress: bool = True) -> Path:
     """Run every arm (an arm already under way or done is continued, not restarted); then tabulate."""
-    from codesign import sweep as sweeps
-
-    from codesign import runner
+    from codesign import runner, sweep as sweeps
 
     root = study_dir(study, directory)
     if study.analysis is not None:
@@ -245,7 +244,7 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
         prepared = root / PREPARE_DIR
         if not sweeps.finished(prepared):
             if progress:
-                print(f"[{study.name}] first: {study.prepare.label}", flush=True)
+                print(f"[{study.name}] first: {study.prepare.label}", file=sys.stderr, flush=True)
             if (prepared / runner.CONFIG_FILE).is_file():
                 runner.resume(prepared, progress=progress)
             else:
@@ -255,7 +254,7 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
         resume = (arm_dir / sweeps.SWEEP_FILE).is_file()
         if progress:
             print(f"[{study.name}] arm {i + 1}/{len(study.arms)}: {arm.label}"
-                  + (" (continuing)" if resume else ""), flush=True)
+                  + (" (continuing)" if resume else ""), file=sys.stderr, flush=True)
         sweeps.run_sweep(recipe, sweep_dir=arm_dir, resume=resume, progress=progress)
     write_results(study, root)
     return root
