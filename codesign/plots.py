@@ -9,7 +9,8 @@ CURVE_FILE = "learning_curve.png"
 METRIC = "episode_return"
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
+    """matplotlib.pyplot, headless (Agg): charts are files, never windows."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -23,7 +24,7 @@ def learning_curve(rows: list[dict], path: Path, title: str, metric: str = METRI
     points = [(r["iteration"], r["wall_time"], r[metric]) for r in rows if metric in r]
     if not points:
         return None
-    plt = _pyplot()
+    plt = pyplot()
     iteration, wall, value = zip(*points)
     best = [max(value[:i + 1]) for i in range(len(value))]
     fig, axes = plt.subplots(1, 2, figsize=(8, 3), sharey=True, constrained_layout=True)
@@ -58,7 +59,7 @@ def sweep_curves(curves: dict[str, list[list[dict]]], path: Path, title: str, me
     lines = {label: line for label, line in lines.items() if line[0]}
     if not lines:
         return None
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
     for label, (iterations, mean, std) in lines.items():
         (drawn,) = ax.plot(iterations, mean, marker=".", label=label)

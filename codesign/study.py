@@ -328,9 +328,9 @@ def table_markdown(rows: list[Row]) -> str:
 
 def plot(study: Study, rows: list[Row], path: Path) -> Path:
     """Ours (mean, one std over seeds, each seed a dot) beside the paper's number, per arm."""
-    from codesign.plots import _pyplot
+    from codesign.plots import pyplot
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(rows), 3.2), constrained_layout=True)
     xs = range(len(rows))
     ax.bar([x - 0.2 for x in xs], [r.mean for r in rows], width=0.4, yerr=[0 if math.isnan(r.std) else r.std

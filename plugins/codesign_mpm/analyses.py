@@ -59,9 +59,9 @@ def _setup(study) -> tuple[Any, Any, DesignFields]:
 
 
 def _plot(path: Path, title: str, draw: Callable[[Any], None]) -> None:
-    from codesign.plots import _pyplot
+    from codesign.plots import pyplot
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 3.2), constrained_layout=True)
     draw(ax)
     ax.set_title(title, fontsize=9)
