@@ -82,7 +82,7 @@ def test_int_is_accepted_where_float_is_declared(registry):
 def test_unknown_top_level_key(registry):
     message = error_of(registry, {**base_data(), "sed": 3})
     assert "sed: unknown key; did you mean 'seed'?" in message
-    assert "allowed: name, seed, run_dir, tracking, render, sweep, environment" in message
+    assert "allowed: name, seed, run_dir, tracking, render, sweep, init_controller, environment" in message
 
 
 def test_unknown_key_inside_a_section(registry):
