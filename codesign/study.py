@@ -35,6 +35,7 @@ BEST_INFO = Path("best") / "info.json"
 DOCS_PAGE = Path("docs") / "studies.md"
 DOCS_IMAGES = Path("docs") / "images" / "studies"
 SCALE_DEFAULT = "cpu"
+LISTED_ARMS = 6  # up to this many arms, the verdict spells out both orderings
 
 
 @dataclass(frozen=True)
@@ -294,14 +295,21 @@ def verdict(rows: list[Row]) -> str:
     ours_order = sorted(compared, key=lambda r: r.mean, reverse=True)
     tau = kendalltau([r.arm.paper for r in compared], [r.mean for r in compared]).statistic
     agreement = f"Kendall's tau {tau:.2f}" if math.isfinite(tau) else "Kendall's tau undefined: tied means"
+    unclear = [f"{a.arm.label} / {b.arm.label}" for a, b in zip(paper_order, paper_order[1:])
+               if not abs(a.mean - b.mean) > (a.std if math.isfinite(a.std) else 0) + (b.std if math.isfinite(b.std) else 0)]
+    if len(compared) > LISTED_ARMS:  # a benchmark grid: the orderings are too long to read, the numbers are not
+        swapped = sum((a.arm.paper - b.arm.paper) * (a.mean - b.mean) < 0 for i, a in enumerate(compared)
+                      for b in compared[i + 1:])
+        pairs = len(compared) * (len(compared) - 1) // 2
+        return (f"Over the {len(compared)} arms with a number in the paper, our means order {pairs - swapped} of "
+                f"{pairs} pairs as the paper's do ({agreement}); {len(unclear)} of the {len(compared) - 1} "
+                f"neighbours in the paper's ordering are within one standard deviation over seeds.")
     names = " > ".join(r.arm.label for r in paper_order)
     if paper_order == ours_order:
         text = f"The paper's ordering ({names}) **holds** here ({agreement})."
     else:
         text = (f"The paper's ordering ({names}) **does not hold** here: ours is "
                 f"{' > '.join(r.arm.label for r in ours_order)} ({agreement}).")
-    unclear = [f"{a.arm.label} / {b.arm.label}" for a, b in zip(paper_order, paper_order[1:])
-               if not abs(a.mean - b.mean) > (a.std if math.isfinite(a.std) else 0) + (b.std if math.isfinite(b.std) else 0)]
     if unclear:
         text += (" Within one standard deviation of each other over seeds (not separated at this scale): "
                  + ", ".join(unclear) + ".")

@@ -182,3 +182,10 @@ def test_a_study_under_way_reports_its_finished_arms(tmp_path, toy_study, cli):
     assert code == 0, err
     section = (tmp_path / "s" / "section.md").read_text()
     assert "**Under way**: 2 of 4 runs finished (1 of 2 arms" in section and "Tight bound" not in section
+
+
+def test_a_large_table_verdict_counts_the_pairs_ordered_as_in_the_paper():
+    rows = [_row(f"arm{i}", paper, (mean, mean + 0.01)) for i, (paper, mean) in
+            enumerate([(0.1, 1.0), (0.2, 2.0), (0.3, 3.0), (0.4, 4.0), (0.5, 5.0), (0.6, 7.0), (0.7, 6.0)])]
+    text = verdict(rows)
+    assert "Over the 7 arms with a number in the paper, our means order 20 of 21 pairs as the paper's do" in text
