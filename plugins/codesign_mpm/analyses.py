@@ -58,6 +58,14 @@ def _setup(study) -> tuple[Any, Any, DesignFields]:
     return env, controller, full
 
 
+def _voxels(space, shape: list[int]) -> np.ndarray:
+    """(N, 3) the voxel of each workspace particle, on a grid of `shape` over the workspace's
+    bounds (its faces, which the workspace's own muscle grid splits too)."""
+    lo, hi = space.box()
+    cells = np.floor((space.points - lo) / (hi - lo) * np.asarray(shape)).astype(int)
+    return np.minimum(cells, np.asarray(shape) - 1)
+
+
 def _plot(path: Path, title: str, draw: Callable[[Any], None]) -> None:
     from codesign.plots import pyplot
 
@@ -74,16 +82,16 @@ def loss_landscape(study, root: Path, progress: bool = True) -> str:
     """The loss (minus the return) along actuator-placement parameters, and against the size of a
     corner cut from the body.
 
-    Placement: the particles of one voxel of the workspace (a cell of a `voxels` grid) belong to
-    their own actuator with weight 1 - s and to another actuator with weight s (soft placement, as
-    in the paper); s runs over [0, 1], for every voxel and every other actuator. Shape: a cube of
+    Placement: the particles of one voxel of the workspace (a cell of a `voxels` grid) keep their
+    own muscle membership with weight 1 - s and join another actuator with weight s (soft
+    placement, as in the paper); s runs over [0, 1], for every voxel and every actuator but the
+    voxel's own. Shape: a cube of
     edge c (a fraction of the workspace's height) is removed from the workspace's `corner`.
     """
     params = study.parameters
     env, controller, full = _setup(study)
     points = env.design_space.points
-    lo, hi = points.min(0), points.max(0)
-    cells = np.floor((points - lo) / (hi - lo + 1e-12) * np.asarray(params["voxels"])).astype(int)
+    cells = _voxels(env.design_space, params["voxels"])
     voxels = [tuple(int(i) for i in v) for v in np.unique(cells, axis=0)]
     members = {v: np.all(cells == np.asarray(v), axis=1) for v in voxels}
     own = {v: int(np.bincount(full.muscle[members[v]].argmax(1), minlength=env.action_dim).argmax()) for v in voxels}
@@ -92,12 +100,12 @@ def loss_landscape(study, root: Path, progress: bool = True) -> str:
     def placement(key: list) -> dict:
         *v, to, s = key
         v = tuple(v)
-        muscle = full.muscle.copy()
-        muscle[members[v]] = 0.0
-        muscle[members[v], own[v]], muscle[members[v], to] = 1.0 - s, s
+        muscle = full.muscle.copy()  # s = 0 is the workspace's own design, exactly
+        muscle[members[v]] = (1.0 - s) * muscle[members[v]] + s * np.eye(env.action_dim)[to]
         record = play(env, DesignFields(full.occupancy, full.stiffness, muscle, full.fiber), controller)
         return {"loss": -record.episode_return, "torn": record.metrics.get("torn_fraction", float("nan"))}
 
+    lo, hi = points.min(0), points.max(0)
     corner = np.asarray(params["corner"], dtype=float)  # 0 or 1 per axis: which corner of the workspace
 
     def cut(c: float) -> dict:
@@ -202,9 +210,7 @@ def muscle_ambiguity(study, root: Path, progress: bool = True) -> str:
         return float(math.sqrt(ot.emd2(w, w, ot.dist(a, b))))  # the W2 distance of equal-mass particles
 
     points = env.design_space.points
-    lo, hi = points.min(0), points.max(0)
-    cells = np.floor((points - lo) / (hi - lo + 1e-12) * np.asarray(params["voxels"])).astype(int)
-    cell_id = np.unique(cells, axis=0, return_inverse=True)[1].ravel()
+    cell_id = np.unique(_voxels(env.design_space, params["voxels"]), axis=0, return_inverse=True)[1].ravel()
 
     def target_design(kind: str, multiplier: float, rng: np.random.Generator) -> DesignFields:
         if kind == "stiffness":
