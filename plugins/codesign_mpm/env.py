@@ -287,8 +287,7 @@ class LocomotionEnv(Environment):
                              "robot", "fiber")}
         filled = Particles(x=base.x[fill], v=base.v[fill], volume=base.volume[fill],
                            muscle=np.zeros((n, cover.muscle.shape[1])), **like)
-        return Particles(**{name: np.concatenate([getattr(filled, name), getattr(cover, name)])
-                            for name in Particles.__dataclass_fields__})
+        return _concat(filled, cover)
 
     def reset(self, design: DesignFields | None = None, seed: int | None = None) -> np.ndarray:
         """Load ``design`` (or keep the last one); the tasks are deterministic, so ``seed`` is unused."""
