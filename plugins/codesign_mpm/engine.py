@@ -8,17 +8,18 @@ One substep is four kernels, each close to its equation:
                 differentiable layouts first run one small kernel per material run
                 (`_constitutive_update`: return mapping, stress, muscle), and p2g only scatters
     grid_op  -> v = p / m + dt g; terrain (height-map SDF, Coulomb friction); domain walls
-    g2p      -> gather v and C; x <- x + dt v; the particle's velocity keeps a share `flip` of
-                its own (FLIP: v_p + the grid's change) and takes the rest from the grid (APIC)
+    g2p      -> gather v and C; x <- x + dt v; with `scene.flip` > 0 (opt-in) an elastic body's
+                particle keeps that share of its own velocity plus the grid's change (FLIP)
 
-Why FLIP: APIC hands each particle the grid's velocity, which keeps the particles' affine
+Why FLIP (opt-in): APIC hands each particle the grid's velocity, which keeps the particles' affine
 motion and filters away the rest, at every substep: a damping whose rate is the number of
 substeps per second. A robot on terrain, whose velocity near a stuck contact is not affine
 within a cell, lost its progress as the step shrank (docs/contact.md sections 8-10). With the
 FLIP share, a particle keeps its own velocity and adds the grid's change over the substep,
 `v_p' = V_p + flip (v_p - V_p^old)` (V_p: the grid's new velocity at p, V_p^old: the grid's
 velocity before forces, both gathered with p's weights); positions move with the grid (V_p),
-as F does, so the deformation stays that of the grid's field.
+as F does, so the deformation stays that of the grid's field. Not the default: a robot dropped
+onto the ground at 8 units/s gains energy with it (docs/contact.md section 10).
 
 Scatters without atomics: on a CPU a float atomic add is a compare-and-swap loop, and p2g's
 108 of them per particle bound the whole substep. There, each thread scatters its chunk of
@@ -250,7 +251,7 @@ class Layout:
     requires_grad: bool
     scatter_copies: int = 1  # private grids p2g scatters into without atomics (runtime.scatter_copies)
     members: int = 1  # scenes simulated side by side (codesign_mpm.batch); 1: a plain simulator
-    has_flip: bool = False  # the FLIP share of the elastic bodies' velocity update (scene.flip > 0): the grid's velocity before forces
+    has_flip: bool = False  # FLIP's share in the elastic bodies' velocity update (scene.flip > 0)
 
 
 @ti.data_oriented
@@ -1139,7 +1140,8 @@ class _Storage:
     @ti.kernel
     def _store_grid(self, k: ti.i32, store: ti.types.ndarray(), box: ti.types.ndarray()):
         """Keep this substep's grid momentum and mass (with FLIP, the momentum before forces too) over
-        the touched box as record k of `store` ((records, nodes, part_width)) for the reverse pass, which then need not run p2g again. box[k] holds
+        the touched box as record k of `store` ((records, nodes, part_width)) for the reverse pass,
+        which then need not run p2g again. box[k] holds
         the box (lo, hi) and whether it fit (box[k, 6]); the reverse pass recomputes a substep whose
         box was larger than a record, and the next rollout's records grow to the largest box seen."""
         lo = ti.Vector([self.lo[0][None], self.lo[1][None], self.lo[2][None]])
@@ -1979,7 +1981,8 @@ class Simulator:
         return Rollout(self._com[0].astype(np.float64), self._com[1].astype(np.float64), final.x, final.v, final)
 
     def _prepare_grid_store(self) -> None:
-        """Records for a segment's grids (momentum and mass, with FLIP the momentum before forces, over the touched box), sized at twice the
+        """Records for a segment's grids (momentum and mass, with FLIP the momentum before forces, over
+        the touched box), sized at twice the
         volume of the particles' box now, within GRID_STORE_BYTES; a substep whose box outgrows its
         record is recomputed in the reverse pass instead. None with a full grid region."""
         nodes = 0

@@ -26,11 +26,11 @@ from test_environments import make_env, random_actions  # same folder: pytest pu
 COVERS = {"ground": None, "ice": None, "desert": "sand", "clay": "clay", "wetland": "mud", "snow": "snow",
           "shallow_water": "water", "ocean": "water"}
 T = 8  # frames: the cover has settled onto the terrain and carries the robot
-MAX_FRAMES, SEGMENT = 12, 64
+MAX_FRAMES, SEGMENT = 12, 64  # shared by both simulators of an environment, so they share compiled kernels
 MUSCLE_STEP = 1e-5
 """A foot's membership in a muscle moves the loss by ~1e-6 per unit: with a step of 1e-6 the difference
 is at float64's round-off (on Perlin terrain, 1.49689e-6 against the adjoint's 1.49638e-6; steps
-of 1e-5 and 1e-4 give 1.49641e-6 and 1.496377e-6, converging on it)."""  # shared by both simulators of an environment, so they share compiled kernels
+of 1e-5 and 1e-4 give 1.49641e-6 and 1.496377e-6, converging on it)."""
 
 
 def central(f, eps: float) -> float:

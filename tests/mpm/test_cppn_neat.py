@@ -1,12 +1,10 @@
 """cppn_neat on a tiny crawler: NEAT (design) and CMA-ES (control) improve on their first
 population within a few generations, and the best design and controller replay to the same return.
 
-Measured (8 generations of 8, horizon 10, muscles at 0.4 E, the strongest admissible; the FLIP share
-at its default): first generation's best -> best after 8, and mean return of the first generation ->
-mean over the last four: seed 0: -0.008 -> 0.364, -0.061 -> 0.076; seed 1: 0.234 -> 0.305,
-0.068 -> 0.061; seed 2: 0.068 -> 0.112, 0.002 -> 0.009. The whole population climbs only where it
-starts poor (seed 0); seed 1's first generation is already good and its mean stays, while its best
-climbs.
+Measured (8 generations of 8, horizon 10, muscles at 0.4 E, the strongest admissible): first
+generation's best -> best after 8, and mean return of the first generation -> mean over the last
+four: seed 0: 0.010 -> 0.310, -0.016 -> 0.099; seed 1: 0.240 -> 0.311, 0.065 -> 0.086; seed 2:
+0.069 -> 0.100, 0.007 -> 0.015.
 """
 import json
 
@@ -33,8 +31,7 @@ def test_cppn_neat_improves_on_its_first_population_and_its_best_replays(seed, t
     run_dir = runner.run(resolve_recipe(recipe), run_dir=tmp_path / "run", progress=False)
     rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     assert rows[-1]["best_return"] > rows[0]["episode_return"] + 0.05
-    if seed == 0:
-        assert np.mean([r["mean_return"] for r in rows[-4:]]) > rows[0]["mean_return"] + 0.05
+    assert np.mean([r["mean_return"] for r in rows[-4:]]) > rows[0]["mean_return"] + 0.015
     info = json.loads((run_dir / "best" / "info.json").read_text())
     assert info["episode_return"] == rows[-1]["best_return"] and (run_dir / "best" / "genome.pkl").exists()
     # deterministic task; the generation played in one batch, which sums atomics in another order (float32)
