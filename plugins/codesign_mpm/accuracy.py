@@ -255,15 +255,16 @@ def gait(frame: int, k: int, amplitude: float = 0.3, hz: float = 4.0) -> np.ndar
     return amplitude * np.sin(phase + np.array([0.0, math.pi / 2, 3 * math.pi / 2, 0.0]))[:k]
 
 
-def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[float] = None, arch: str = "cpu"):
+def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[float] = None, arch: str = "cpu",
+              flip: float = 0.0):
     """The registered environment at setting `s`; terrain at 0.13 (above the wall band down to dx 1/24)
-    with the preset's friction unless `friction` is given."""
+    with the preset's friction unless `friction` is given; `flip`: the robot's FLIP share."""
     from codesign_mpm.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
     from codesign_mpm.env import LocomotionEnv
 
     preset = PRESETS[environment]
     config = PRESET_CONFIGS[environment](
-        dx=s.dx, cfl=s.cfl, dtype=s.dtype, horizon=horizon, checkpoint_every=s.checkpoint_every, arch=arch,
+        dx=s.dx, cfl=s.cfl, dtype=s.dtype, horizon=horizon, checkpoint_every=s.checkpoint_every, arch=arch, flip=flip,
         terrain=TerrainConfig(height=0.13, friction=preset.friction if friction is None else friction),
         robot=RobotConfig(youngs_modulus=preset.robot_youngs_modulus, particles_per_cell=s.particles_per_cell,
                           position=[0.35, 0.25]))

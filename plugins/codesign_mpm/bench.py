@@ -192,6 +192,46 @@ def measure_adaptive(case: Case, frames: int = 3, repeats: int = 5) -> dict:
                 cost=float(np.median(np.asarray(times["adaptive"]) / np.asarray(times["fixed"]))))
 
 
+FLIP_MEASURED = 0.99  # the share docs/contact.md measured converging in time
+
+
+def measure_flip(case: Case, frames: int = 3, repeats: int = 5, backward_frames: int = 20) -> dict:
+    """What the FLIP share of the velocity update costs (docs/contact.md section 10): wall time per
+    frame forward and (forward + backward) per differentiable episode with `scene.flip` 0.99
+    against APIC alone (flip 0, the default), in one process, timed alternately."""
+    from codesign_mpm import build_particles
+    from codesign_mpm.engine import Simulator
+
+    scene = robot_scene(case)
+    particles = build_particles(scene)
+    variants = {"flip": replace(scene, flip=FLIP_MEASURED), "apic": replace(scene, flip=0.0)}
+    sims = {name: Simulator(v, particles) for name, v in variants.items()}
+    grads = {name: Simulator(v, particles, requires_grad=True, max_frames=backward_frames)
+             for name, v in variants.items()}
+    actions = 0.1 * np.sin(np.arange(backward_frames)[:, None] * 0.3 + np.arange(particles.n_actuators))
+    for name in variants:  # compile (or load from the offline cache)
+        sims[name].step(np.zeros(particles.n_actuators))
+        grads[name].rollout(actions[:1])
+        grads[name].backward(com_v=np.ones((2, 3)))
+    forward: dict[str, list[float]] = {name: [] for name in variants}
+    backward: dict[str, list[float]] = {name: [] for name in variants}
+    for r in range(repeats):
+        for name in variants:
+            t0 = time.perf_counter()
+            sims[name].step(np.full(particles.n_actuators, 0.3 * (-1) ** r), frames=frames)
+            forward[name].append((time.perf_counter() - t0) / frames)
+            t0 = time.perf_counter()
+            grads[name].rollout(actions)
+            grads[name].backward(com_v=np.tile([1.0, 0.0, 0.0], (backward_frames + 1, 1)))
+            backward[name].append(time.perf_counter() - t0)
+    ratio = lambda d: float(np.median(np.asarray(d["flip"]) / np.asarray(d["apic"])))  # noqa: E731
+    return dict(measure="flip", particles=particles.n, flip=FLIP_MEASURED,
+                flip_s_per_frame=float(np.median(forward["flip"])), apic_s_per_frame=float(np.median(forward["apic"])),
+                forward_cost=ratio(forward), episode_frames=backward_frames,
+                flip_episode_s=float(np.median(backward["flip"])), apic_episode_s=float(np.median(backward["apic"])),
+                forward_backward_cost=ratio(backward))
+
+
 COVERS = ("none", "sand", "snow", "clay", "mud", "water")
 """What `measure_compile` puts under the robot: each material's own backward kernels."""
 
@@ -259,7 +299,7 @@ def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True
     from codesign.progress import progress_bar
 
     machine = _machine()
-    with progress_bar(total=7 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
+    with progress_bar(total=8 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
         for scale in scales:
             for case in (Case(scale, "float32"), Case(scale, "float64"), Case(scale, "float32", "full")):
                 emit(dict(scale=scale, dtype=case.dtype, grid_region=case.grid_region,
@@ -274,6 +314,8 @@ def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True
             emit(dict(scale=scale, dtype="float32", **_run_isolated("scatter", case), **machine))
             bar.update(1)
             emit(dict(scale=scale, dtype="float32", **_run_isolated("adaptive", case), **machine))
+            bar.update(1)
+            emit(dict(scale=scale, dtype="float32", **_run_isolated("flip", case), **machine))
             bar.update(1)
 
 
@@ -364,5 +406,5 @@ if __name__ == "__main__":  # one isolated measurement, used by _run_isolated / 
     else:
         kind, scale, dtype, region, kwargs = sys.argv[1:6]
         measure = {"forward": measure_forward, "backward": measure_backward, "batch": measure_batch,
-                   "scatter": measure_scatter, "adaptive": measure_adaptive}[kind]
+                   "scatter": measure_scatter, "adaptive": measure_adaptive, "flip": measure_flip}[kind]
         print(json.dumps(measure(Case(scale, dtype, region), **json.loads(kwargs))))

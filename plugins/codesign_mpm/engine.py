@@ -8,7 +8,18 @@ One substep is four kernels, each close to its equation:
                 differentiable layouts first run one small kernel per material run
                 (`_constitutive_update`: return mapping, stress, muscle), and p2g only scatters
     grid_op  -> v = p / m + dt g; terrain (height-map SDF, Coulomb friction); domain walls
-    g2p      -> gather v and C; x <- x + dt v
+    g2p      -> gather v and C; x <- x + dt v; with `scene.flip` > 0 (opt-in) an elastic body's
+                particle keeps that share of its own velocity plus the grid's change (FLIP)
+
+Why FLIP (opt-in): APIC hands each particle the grid's velocity, which keeps the particles' affine
+motion and filters away the rest, at every substep: a damping whose rate is the number of
+substeps per second. A robot on terrain, whose velocity near a stuck contact is not affine
+within a cell, lost its progress as the step shrank (docs/contact.md sections 8-10). With the
+FLIP share, a particle keeps its own velocity and adds the grid's change over the substep,
+`v_p' = V_p + flip (v_p - V_p^old)` (V_p: the grid's new velocity at p, V_p^old: the grid's
+velocity before forces, both gathered with p's weights); positions move with the grid (V_p),
+as F does, so the deformation stays that of the grid's field. Not the default: a robot dropped
+onto the ground at 8 units/s gains energy with it (docs/contact.md section 10).
 
 Scatters without atomics: on a CPU a float atomic add is a compare-and-swap loop, and p2g's
 108 of them per particle bound the whole substep. There, each thread scatters its chunk of
@@ -83,6 +94,7 @@ JACOBI_TOL_ULPS = 64
 trajectories moved from the full sweeps' by 1/5 to 1/15 of float32's own error (its rms distance from
 float64); in the desert a bound of 3e-5 moved them by up to 0.7 of it, 1e-4 by 3 to 10 times it."""
 HENCKY_PLASTIC = (ID["sand"], ID["snow"], ID["clay"], ID["mud"])  # models with a return mapping in log strain
+FLIP_MODELS = tuple(m.id for m in MATERIALS.values() if not m.plastic)  # the elastic bodies: scene.flip applies to them
 JACOBI_EPS = 1e-6  # eigenvalue gaps below this count as coincident (the scale of b's round-off in float32)
 ADAPTIVE_CFL_FACTOR = 2.0
 """A frame takes more substeps than at rest once its state's CFL number (particle speed plus the
@@ -239,6 +251,7 @@ class Layout:
     requires_grad: bool
     scatter_copies: int = 1  # private grids p2g scatters into without atomics (runtime.scatter_copies)
     members: int = 1  # scenes simulated side by side (codesign_mpm.batch); 1: a plain simulator
+    has_flip: bool = False  # FLIP's share in the elastic bodies' velocity update (scene.flip > 0)
 
 
 @ti.data_oriented
@@ -272,6 +285,9 @@ class _Storage:
         self.batched = layout.members > 1
         self.copies = layout.scatter_copies
         self.private_scatter = layout.scatter_copies > 1
+        self.has_flip = layout.has_flip
+        # a private grid node: momentum, mass (and with FLIP the momentum before forces)
+        self.part_width = 7 if layout.has_flip else 4
         # a batch's member grids lie side by side along x: member b owns nodes [b nx, (b + 1) nx)
         self.grid_total = (layout.grid_shape[0] * layout.members,) + tuple(layout.grid_shape[1:])
         n, K, gs, grad = layout.capacity, max(layout.n_actuators, 1), layout.grid_shape, layout.requires_grad
@@ -315,7 +331,7 @@ class _Storage:
         self.grid_m = scalar(self.grid_total, True)
         self.grid_v_out = vec(3, self.grid_total, True)
         if self.private_scatter:  # p2g's chunk c of the particles scatters into copy c; _sum_copies adds them
-            self.grid_part = vec(4, (self.copies,) + self.grid_total)
+            self.grid_part = vec(self.part_width, (self.copies,) + self.grid_total)
         self.height = scalar((gs[0], gs[2]))
         self.normal = vec(3, (gs[0], gs[2]))
         # the node box touched by particles; scalar fields so the reduction stays thread-local
@@ -350,6 +366,10 @@ class _Storage:
             self.member_substeps = scalar((layout.members,), dtype=ti.i32)  # per control step
             self.member_speed = scalar((layout.members,))
             self.member_wave = scalar((layout.members,))
+        if self.has_flip:  # last, as the batch's fields
+            self.grid_q = vec(3, self.grid_total, True)  # momentum before forces: sum w m (v + C (x_i - x_p))
+            self.grid_v_old = vec(3, self.grid_total, True)  # its velocity, grid_q / m (grid_op)
+            self.flip_ratio = scalar(())
         self._tree = builder.finalize()
 
     def free(self) -> None:
@@ -959,13 +979,24 @@ class _Storage:
         vol = self.vol[p]
         mass = self.rho[p] * vol
         affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * self.C[s, p]
+        inertia = mass * self.C[s, p]
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = (ti.cast(offset, float) - fx) * dx
             weight = w[i][0] * w[j][1] * w[k][2]
             momentum = weight * (mass * self.v[s, p] + affine @ dpos)
             I = node + offset
-            if ti.static(self.private_scatter):  # plain adds: a float atomic add is a compare-and-swap loop
+            if ti.static(self.has_flip):
+                before = weight * (mass * self.v[s, p] + inertia @ dpos)  # without the force
+                if ti.static(self.private_scatter):
+                    c = self.grid_part[copy, I[0], I[1], I[2]]
+                    self.grid_part[copy, I[0], I[1], I[2]] = c + ti.Vector(
+                        [momentum[0], momentum[1], momentum[2], weight * mass, before[0], before[1], before[2]])
+                else:
+                    self.grid_v_in[I] += momentum
+                    self.grid_m[I] += weight * mass
+                    self.grid_q[I] += before
+            elif ti.static(self.private_scatter):  # plain adds: a float atomic add is a compare-and-swap loop
                 c = self.grid_part[copy, I[0], I[1], I[2]]
                 self.grid_part[copy, I[0], I[1], I[2]] = c + ti.Vector(
                     [momentum[0], momentum[1], momentum[2], weight * mass])
@@ -982,7 +1013,8 @@ class _Storage:
         c = m v - dx A fx and A = -4 dt vol / dx^2 tau + m C. With g_n, h_n the momentum and mass
         gradients, S0 = sum w_n g_n and S1 = sum w_n g_n n^T: A's gradient is dx (S1 - S0 fx^T),
         fx's is sum (dw_n / dfx) (g_n . q_n + m h_n) - dx A^T S0 (n enters as constants, so the
-        loop over nodes has no 3x3 products)."""
+        loop over nodes has no 3x3 products). With FLIP, node n also gets w_n (m v + m C (n - fx) dx)
+        (the momentum before forces), whose gradient enters the same way with A = m C."""
         dt, dx = self._dt(p), self.dx[None]
         inv_dx = 1.0 / dx
         node, fx, w = self._stencil(p, s)
@@ -993,8 +1025,12 @@ class _Storage:
         affine = stress_scale * vol * tau + mass * self.C[s, p]
         a_dx = dx * affine
         c = mass * v - a_dx @ fx
+        i_dx = dx * mass * self.C[s, p]  # FLIP's momentum before forces: its affine part has no stress
+        c_old = mass * v - i_dx @ fx
         S0 = ti.Vector.zero(float, 3)
         S1 = ti.Matrix.zero(float, 3, 3)
+        S0_old = ti.Vector.zero(float, 3)
+        S1_old = ti.Matrix.zero(float, 3, 3)
         h_sum = 0.0
         fx_bar = ti.Vector.zero(float, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
@@ -1009,12 +1045,28 @@ class _Storage:
             fx_bar += d_weight * (g.dot(q) + mass * h)
             S0 += weight * g
             h_sum += weight * h
+            if ti.static(self.has_flip):
+                g_old = self.grid_q.grad[node + ti.Vector(o)]
+                for d in ti.static(range(3)):
+                    if ti.static(o[d]):
+                        for e in ti.static(range(3)):
+                            S1_old[e, d] += (o[d] * weight) * g_old[e]
+                fx_bar += d_weight * g_old.dot(self._at_node(c_old, i_dx, o))
+                S0_old += weight * g_old
         affine_bar = dx * (S1 - S0.outer_product(fx))
         fx_bar -= a_dx.transpose() @ S0
         mass_bar = v.dot(S0) + h_sum + (self.C[s, p] * affine_bar).sum()
+        v_bar = mass * S0
+        C_bar = mass * affine_bar
+        if ti.static(self.has_flip):
+            inertia_bar = dx * (S1_old - S0_old.outer_product(fx))
+            fx_bar -= i_dx.transpose() @ S0_old
+            mass_bar += v.dot(S0_old) + (self.C[s, p] * inertia_bar).sum()
+            v_bar += mass * S0_old
+            C_bar += mass * inertia_bar
         # plain read-modify-writes: p is this iteration's alone (a += would be an atomic add)
-        self.v.grad[s, p] = self.v.grad[s, p] + mass * S0
-        self.C.grad[s, p] = self.C.grad[s, p] + mass * affine_bar
+        self.v.grad[s, p] = self.v.grad[s, p] + v_bar
+        self.C.grad[s, p] = self.C.grad[s, p] + C_bar
         self.tau.grad[p] = stress_scale * vol * affine_bar  # its only writer: _constitutive_update's adjoint reads it
         self.vol.grad[p] = self.vol.grad[p] + self.rho[p] * mass_bar + stress_scale * (tau * affine_bar).sum()
         self.x.grad[s, p] = self.x.grad[s, p] + inv_dx * fx_bar
@@ -1060,28 +1112,36 @@ class _Storage:
             I = self._node(b, i, j, k)
             self.grid_v_in[I] = ti.Vector.zero(float, 3)
             self.grid_m[I] = 0.0
+            if ti.static(self.has_flip):
+                self.grid_q[I] = ti.Vector.zero(float, 3)
 
     @ti.kernel
     def _sum_copies(self, adjoint: ti.template()):
         """Sum the private grids, and leave them zero for their next use: into the grid's momentum and
-        mass after p2g, or into grid_v_out's gradient after g2p's adjoint."""
+        mass (and momentum before forces) after p2g, or into grid_v_out's (and grid_v_old's) gradient
+        after g2p's adjoint."""
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             I = self._node(b, i, j, k)
-            total = ti.Vector.zero(float, 4)
+            total = ti.Vector.zero(float, self.part_width)
             for c in range(self.copies):
                 total += self.grid_part[c, I[0], I[1], I[2]]
-                self.grid_part[c, I[0], I[1], I[2]] = ti.Vector.zero(float, 4)
+                self.grid_part[c, I[0], I[1], I[2]] = ti.Vector.zero(float, self.part_width)
             if ti.static(adjoint):
                 self.grid_v_out.grad[I] = ti.Vector([total[0], total[1], total[2]])
+                if ti.static(self.has_flip):
+                    self.grid_v_old.grad[I] = ti.Vector([total[4], total[5], total[6]])
             else:
                 self.grid_v_in[I] = ti.Vector([total[0], total[1], total[2]])
                 self.grid_m[I] = total[3]
+                if ti.static(self.has_flip):
+                    self.grid_q[I] = ti.Vector([total[4], total[5], total[6]])
 
     @ti.kernel
     def _store_grid(self, k: ti.i32, store: ti.types.ndarray(), box: ti.types.ndarray()):
-        """Keep this substep's grid momentum and mass over the touched box as record k of `store`
-        ((records, nodes, 4)) for the reverse pass, which then need not run p2g again. box[k] holds
+        """Keep this substep's grid momentum and mass (with FLIP, the momentum before forces too) over
+        the touched box as record k of `store` ((records, nodes, part_width)) for the reverse pass,
+        which then need not run p2g again. box[k] holds
         the box (lo, hi) and whether it fit (box[k, 6]); the reverse pass recomputes a substep whose
         box was larger than a record, and the next rollout's records grow to the largest box seen."""
         lo = ti.Vector([self.lo[0][None], self.lo[1][None], self.lo[2][None]])
@@ -1099,6 +1159,9 @@ class _Storage:
                 for c in ti.static(range(3)):
                     store[k, index, c] = self.grid_v_in[I][c]
                 store[k, index, 3] = self.grid_m[I]
+                if ti.static(self.has_flip):
+                    for c in ti.static(range(3)):
+                        store[k, index, 4 + c] = self.grid_q[I][c]
 
     @ti.kernel
     def _load_box(self, k: ti.i32, box: ti.types.ndarray()):
@@ -1117,6 +1180,8 @@ class _Storage:
             index = ((b * extent[0] + i - lo[0]) * extent[1] + j - lo[1]) * extent[2] + l - lo[2]
             self.grid_v_in[I] = ti.Vector([store[k, index, 0], store[k, index, 1], store[k, index, 2]])
             self.grid_m[I] = store[k, index, 3]
+            if ti.static(self.has_flip):
+                self.grid_q[I] = ti.Vector([store[k, index, 4], store[k, index, 5], store[k, index, 6]])
 
     @ti.kernel
     def _clear_grid_grad(self):
@@ -1126,6 +1191,9 @@ class _Storage:
             self.grid_v_in.grad[I] = ti.Vector.zero(float, 3)
             self.grid_m.grad[I] = 0.0
             self.grid_v_out.grad[I] = ti.Vector.zero(float, 3)
+            if ti.static(self.has_flip):
+                self.grid_q.grad[I] = ti.Vector.zero(float, 3)
+                self.grid_v_old.grad[I] = ti.Vector.zero(float, 3)
 
     @ti.kernel
     def _grid_op(self):
@@ -1139,7 +1207,10 @@ class _Storage:
                 dt = self.member_dt[b]
             m = self.grid_m[I]
             v = ti.Vector.zero(float, 3)
+            v_old = ti.Vector.zero(float, 3)
             if m > MASS_EPS:
+                if ti.static(self.has_flip):
+                    v_old = self.grid_q[I] / m
                 v = self.grid_v_in[I] / m + dt * self.gravity[None]
                 if ti.static(self.has_terrain):
                     nrm = self.normal[local[0], local[2]]
@@ -1158,46 +1229,77 @@ class _Storage:
                 blocked = ((local < bc) & (v < 0)) | ((local > top) & (v > 0))
                 v = ti.select(blocked, 0.0, v)
             self.grid_v_out[I] = v
+            if ti.static(self.has_flip):
+                self.grid_v_old[I] = v_old
+
+    @ti.func
+    def _flip_share(self, p):
+        """scene.flip for the elastic bodies, 0 (APIC alone) for the covers: with FLIP, a water column's
+        mean pressure gradient fell 10% below rho g (docs/contact.md section 10)."""
+        share = 0.0
+        for model in ti.static(FLIP_MODELS):
+            if self.material[p] == model:
+                share = self.flip_ratio[None]
+        return share
 
     @ti.func
     def _g2p_particle(self, p, s, so):
-        """Gather particle p's new velocity and affine velocity C from its 27 nodes; move it."""
+        """Gather particle p's new velocity (with FLIP's share of its own) and affine velocity C from
+        its 27 nodes; move it with the grid's velocity."""
         inv_dx = 1.0 / self.dx[None]
         node, fx, w = self._stencil(p, s)
         new_v = ti.Vector.zero(float, 3)
         new_C = ti.Matrix.zero(float, 3, 3)
+        old_v = ti.Vector.zero(float, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             g_v = self.grid_v_out[node + offset]
             weight = w[i][0] * w[j][1] * w[k][2]
             new_v += weight * g_v
             new_C += 4.0 * inv_dx * weight * g_v.outer_product(ti.cast(offset, float) - fx)
-        self.v[so, p] = new_v
+            if ti.static(self.has_flip):
+                old_v += weight * self.grid_v_old[node + offset]
+        if ti.static(self.has_flip):
+            self.v[so, p] = new_v + self._flip_share(p) * (self.v[s, p] - old_v)
+        else:
+            self.v[so, p] = new_v
         self.C[so, p] = new_C
         self.x[so, p] = self.x[s, p] + self._dt(p) * new_v
 
     @ti.func
-    def _scatter_grad(self, I, g, copy):
-        """Add g to grid_v_out's gradient at node I: into private grid `copy` with plain adds where
-        the scatter is private, else with an atomic add (as p2g scatters)."""
+    def _scatter_grad(self, I, g, g_old, copy):
+        """Add g to grid_v_out's gradient at node I (and with FLIP g_old to grid_v_old's): into private
+        grid `copy` with plain adds where the scatter is private, else with an atomic add (as p2g
+        scatters)."""
         if ti.static(self.private_scatter):
             part = self.grid_part[copy, I[0], I[1], I[2]]
-            self.grid_part[copy, I[0], I[1], I[2]] = part + ti.Vector([g[0], g[1], g[2], 0.0])
+            if ti.static(self.has_flip):
+                part += ti.Vector([g[0], g[1], g[2], 0.0, g_old[0], g_old[1], g_old[2]])
+            else:
+                part += ti.Vector([g[0], g[1], g[2], 0.0])
+            self.grid_part[copy, I[0], I[1], I[2]] = part
         else:
             self.grid_v_out.grad[I] += g
+            if ti.static(self.has_flip):
+                self.grid_v_old.grad[I] += g_old
 
     @ti.func
     def _g2p_adjoint_particle(self, p, s, copy):
         """g2p's adjoint, written by hand: with a = dL/dv' + dt dL/dx' and B = 4/dx dL/dC' at slot
         s + 1, node n gets w_n h_n, h_n = a + B (n - fx), and x gets dL/dx' + (1/dx) dL/dfx with
         dL/dfx = sum (dw_n / dfx) (g_n . h_n) - B^T sum w_n g_n (fx enters through the weights and
-        through n - fx; g_n is the node's velocity)."""
+        through n - fx; g_n is the node's velocity). With FLIP, v' also holds flip (v - sum w_n u_n)
+        (u_n: the node's velocity before forces): v gets flip dL/dv', node n's u_n gets
+        -w_n flip dL/dv', and fx gets its weights' share."""
         inv_dx = 1.0 / self.dx[None]
         node, fx, w = self._stencil(p, s)
         dw = [fx - 1.5, 2.0 * (1.0 - fx), fx - 0.5]  # d w / d fx, per axis
         x_bar = self.x.grad[s + 1, p]
         B = 4.0 * inv_dx * self.C.grad[s + 1, p]
         h0 = self.v.grad[s + 1, p] + self._dt(p) * x_bar - B @ fx
+        kept = ti.Vector.zero(float, 3)  # FLIP: the share of v' that is v_p - V_p^old
+        if ti.static(self.has_flip):
+            kept = self._flip_share(p) * self.v.grad[s + 1, p]
         S0 = ti.Vector.zero(float, 3)
         fx_bar = ti.Vector.zero(float, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
@@ -1205,11 +1307,15 @@ class _Storage:
             weight, d_weight = self._weight_and_slope(w, dw, i, j, k)
             h = self._at_node(h0, B, o)
             g = self.grid_v_out[node + ti.Vector(o)]
-            self._scatter_grad(node + ti.Vector(o), weight * h, copy)
+            self._scatter_grad(node + ti.Vector(o), weight * h, -weight * kept, copy)
             fx_bar += d_weight * g.dot(h)
+            if ti.static(self.has_flip):
+                fx_bar -= d_weight * kept.dot(self.grid_v_old[node + ti.Vector(o)])
             S0 += weight * g
         fx_bar -= B.transpose() @ S0
         self.x.grad[s, p] = self.x.grad[s, p] + x_bar + inv_dx * fx_bar  # p is this thread's alone
+        if ti.static(self.has_flip):
+            self.v.grad[s, p] = self.v.grad[s, p] + kept
 
     @ti.kernel
     def _g2p_adjoint(self, s: ti.i32, n: ti.i32):
@@ -1428,6 +1534,7 @@ class Simulator:
             boundary_cells=scene.boundary_cells,
             requires_grad=requires_grad,
             scatter_copies=runtime.scatter_copies(),
+            has_flip=scene.flip > 0 and any(int(m) in FLIP_MODELS for m in np.unique(particles.material)),
         ))
         self.k = _acquire(self.layout)
         self._generation = runtime.generation
@@ -1468,6 +1575,8 @@ class Simulator:
         k.dx[None] = s.dx
         k.gravity[None] = s.gravity
         k.friction[None] = s.terrain.friction
+        if k.has_flip:
+            k.flip_ratio[None] = s.flip
         h = height_map(s)
         k.height.from_numpy(h.astype(self.np_real))
         k.normal.from_numpy(normals(h, s.dx).astype(self.np_real))
@@ -1872,7 +1981,8 @@ class Simulator:
         return Rollout(self._com[0].astype(np.float64), self._com[1].astype(np.float64), final.x, final.v, final)
 
     def _prepare_grid_store(self) -> None:
-        """Records for a segment's grids (momentum and mass over the touched box), sized at twice the
+        """Records for a segment's grids (momentum and mass, with FLIP the momentum before forces, over
+        the touched box), sized at twice the
         volume of the particles' box now, within GRID_STORE_BYTES; a substep whose box outgrows its
         record is recomputed in the reverse pass instead. None with a full grid region."""
         nodes = 0
@@ -1880,8 +1990,8 @@ class Simulator:
             self.k._bounds(0, self.n)
             volume = math.prod(self.k.hi[d][None] - self.k.lo[d][None] for d in range(3))
             nodes = min(max(int(GRID_STORE_MARGIN * volume), self._largest_box),
-                        GRID_STORE_BYTES // (self.segment * 4 * np.dtype(self.np_real).itemsize))
-        shape = (self.segment, max(nodes, 1), 4)
+                        GRID_STORE_BYTES // (self.segment * self.k.part_width * np.dtype(self.np_real).itemsize))
+        shape = (self.segment, max(nodes, 1), self.k.part_width)
         if self._grid_store is None or self._grid_store.shape != shape:
             self._grid_store = ti.ndarray(ti.f64 if self.np_real is np.float64 else ti.f32, shape)
             self._grid_boxes = ti.ndarray(ti.i32, (self.segment, 7))

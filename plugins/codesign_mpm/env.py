@@ -133,6 +133,7 @@ def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
         )],
         frame_dt=config.frame_dt,
         cfl=config.cfl,
+        flip=config.flip,
         adaptive_dt=config.adaptive_dt,
         dtype=config.dtype,
         arch=config.arch,

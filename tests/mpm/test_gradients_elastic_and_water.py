@@ -22,6 +22,10 @@ VARIANTS = {
     # the terrain's height and normals vary from column to column: contact and friction along slopes
     "ground on Perlin terrain": ("ground", dict(terrain=TerrainConfig(kind="perlin", height=0.1, amplitude=0.03,
                                                                       frequency=6.0, friction=0.5))),
+    # the FLIP share (opt-in): its terms in p2g's and g2p's hand adjoints, with contact and friction
+    "ground with the FLIP share": ("ground", dict(flip=0.99, terrain=TerrainConfig(kind="perlin", height=0.1,
+                                                                                  amplitude=0.03, frequency=6.0,
+                                                                                  friction=0.5))),
     # every preset's water is inviscid: the viscous stress's gradient otherwise goes unchecked
     "viscous shallow water": ("shallow_water", dict(cover=CoverConfig(kind="water", thickness=0.05,
                                                                       bulk_modulus=1e5, viscosity=20.0))),

@@ -98,6 +98,8 @@ def test_a_body_resting_on_terrain_has_its_face_on_the_surface():
 def test_bad_scene_values():
     with pytest.raises(SceneError, match=r"cfl = 1\.5"):
         validate_scene(Scene(cfl=1.5, bodies=[BodySpec()]))
+    with pytest.raises(SceneError, match=r"flip = 1\b.*\[0, 1\)"):
+        validate_scene(Scene(flip=1, bodies=[BodySpec()]))
     with pytest.raises(SceneError, match=r"terrain\.kind = 'lava'"):
         validate_scene(Scene(terrain=TerrainSpec(kind="lava"), bodies=[BodySpec()]))
     with pytest.raises(SceneError, match=r"bodies = \[\].*at least one body"):
