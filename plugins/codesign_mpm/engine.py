@@ -1141,9 +1141,9 @@ class _Storage:
     def _store_grid(self, k: ti.i32, store: ti.types.ndarray(), box: ti.types.ndarray()):
         """Keep this substep's grid momentum and mass (with FLIP, the momentum before forces too) over
         the touched box as record k of `store` ((records, nodes, part_width)) for the reverse pass,
-        which then need not run p2g again. box[k] holds
-        the box (lo, hi) and whether it fit (box[k, 6]); the reverse pass recomputes a substep whose
-        box was larger than a record, and the next rollout's records grow to the largest box seen."""
+        which then need not run p2g again. box[k] holds the box (lo, hi) and whether it fit
+        (box[k, 6]); the reverse pass recomputes a substep whose box was larger than a record, and
+        the next rollout's records grow to the largest box seen."""
         lo = ti.Vector([self.lo[0][None], self.lo[1][None], self.lo[2][None]])
         extent = ti.Vector([self.hi[0][None], self.hi[1][None], self.hi[2][None]]) - lo
         fits = self.members * extent[0] * extent[1] * extent[2] <= store.shape[1]
@@ -1521,20 +1521,21 @@ class Simulator:
         self.max_frames = max_frames
         self.segment = checkpoint_every or max(1, math.ceil(math.sqrt(max_frames * self.timestep.substeps / 2)))
         self.body_names = [b.name for b in scene.bodies]
+        models = tuple(sorted(set(int(m) for m in particles.material)))
         self.layout = self._layout(Layout(
             capacity=-(-max(particles.n, capacity or 0) // CAPACITY_STEP) * CAPACITY_STEP,
             n_actuators=particles.n_actuators,
             slots=self.segment + 1 if requires_grad else 2,
             rows=max_frames + 1,
             grid_shape=scene.grid_shape,
-            models=tuple(sorted(set(int(m) for m in particles.material))),
+            models=models,
             has_muscles=particles.n_actuators > 0 and bool(np.any(particles.muscle_ratio > 0)),
             muscle_model=scene.muscle_model,
             has_terrain=scene.terrain.kind != "none",
             boundary_cells=scene.boundary_cells,
             requires_grad=requires_grad,
             scatter_copies=runtime.scatter_copies(),
-            has_flip=scene.flip > 0 and any(int(m) in FLIP_MODELS for m in np.unique(particles.material)),
+            has_flip=scene.flip > 0 and any(m in FLIP_MODELS for m in models),
         ))
         self.k = _acquire(self.layout)
         self._generation = runtime.generation
@@ -1982,9 +1983,9 @@ class Simulator:
 
     def _prepare_grid_store(self) -> None:
         """Records for a segment's grids (momentum and mass, with FLIP the momentum before forces, over
-        the touched box), sized at twice the
-        volume of the particles' box now, within GRID_STORE_BYTES; a substep whose box outgrows its
-        record is recomputed in the reverse pass instead. None with a full grid region."""
+        the touched box), sized at twice the volume of the particles' box now, within
+        GRID_STORE_BYTES; a substep whose box outgrows its record is recomputed in the reverse pass
+        instead. None with a full grid region."""
         nodes = 0
         if self.scene.grid_region != "full":
             self.k._bounds(0, self.n)
