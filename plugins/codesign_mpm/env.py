@@ -11,7 +11,7 @@ observations and rewards.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -25,6 +25,7 @@ from codesign.registry import suggest
 from codesign_mpm.batch import BatchSimulator
 from codesign_mpm.config import CoverConfig, EnvironmentPreset, LocomotionConfig, RobotConfig, TaskConfig
 from codesign_mpm.engine import Simulator
+from codesign_mpm.episode import Episode, run_episode
 from codesign_mpm.integrity import MIN_THICKNESS_CELLS, IntegrityWatch, resolved_body, thinnest_cells
 from codesign_mpm.materials import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio
 from codesign_mpm.observations import Observer
@@ -33,9 +34,6 @@ from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneE
 from codesign_mpm.settle import settled_state
 from codesign_mpm.tasks import TASKS, RobotFrame, Task, TaskContext
 from codesign_mpm.terrain import height_map
-
-if TYPE_CHECKING:
-    from codesign_mpm.episode import Episode
 
 OCCUPANCY_THRESHOLD = 0.5
 """Particles whose occupancy is below this are removed: near-massless particles destabilise MPM."""
@@ -411,8 +409,6 @@ class LocomotionEnv(Environment):
                                checkpoint_every: int | None = None) -> Episode:
         """Run an episode of `design` and `controller` as a torch loss (minus the summed reward)
         whose `backward()` reaches the torch parameters behind both (codesign_mpm.episode)."""
-        from codesign_mpm.episode import run_episode
-
         return run_episode(self, design, controller, checkpoint_every)
 
     def grad_simulator(self, particles: Particles) -> Simulator:

@@ -24,7 +24,7 @@ import torch
 
 from codesign.interfaces import Controller, DesignFields
 from codesign_mpm.bridge import simulate, step_frame
-from codesign_mpm.env import LocomotionEnv
+from codesign_mpm.protocols import EpisodeEnvironment
 from codesign_mpm.sampling import Particles
 from codesign_mpm.tasks import RobotFrame
 
@@ -49,7 +49,7 @@ def _tensor(value, shape) -> torch.Tensor:
     return torch.as_tensor(value).to(DTYPE).reshape(shape)
 
 
-def design_inputs(env: LocomotionEnv, design: DesignFields) -> tuple[Particles, tuple[torch.Tensor, ...]]:
+def design_inputs(env: EpisodeEnvironment, design: DesignFields) -> tuple[Particles, tuple[torch.Tensor, ...]]:
     """The design's particles (robot, then cover) and its differentiable per-particle inputs
     (volume, Young's modulus, muscle, fibre), the cover's (with what fills the design's empty
     workspace) as constants."""
@@ -71,7 +71,7 @@ def design_inputs(env: LocomotionEnv, design: DesignFields) -> tuple[Particles, 
     return particles, inputs
 
 
-def run_episode(env: LocomotionEnv, design: DesignFields, controller: Controller,
+def run_episode(env: EpisodeEnvironment, design: DesignFields, controller: Controller,
                 checkpoint_every: int | None = None) -> Episode:
     particles, inputs = design_inputs(env, design)
     volume, stiffness, muscle, fiber = inputs
