@@ -170,7 +170,7 @@ def test_frames_take_the_substeps_their_state_needs_and_backward_replays_them(si
 def test_gradients_are_the_same_with_the_grids_kept_or_recomputed(sim, actions, weights, monkeypatch):
     """The reverse pass takes each substep's grid from the segment's recompute when it fits the store
     (GRID_STORE_BYTES), else recomputes it: both give the same gradients."""
-    from codesign_mpm import engine
+    from codesign_mpm.engine import simulator as engine  # where the simulator reads these limits
 
     wx = np.random.default_rng(4).normal(size=(sim.n, 3)) / sim.n
     kept = gradients(sim, actions, weights, wx, checkpoint_every=5)
@@ -185,7 +185,7 @@ def test_gradients_are_the_same_with_the_grids_kept_or_recomputed(sim, actions, 
 
 def test_grid_records_grow_to_the_largest_box_a_backward_pass_saw(sim, actions, weights, monkeypatch):
     """Records sized under the particles' box keep nothing; the next rollout's hold every box."""
-    from codesign_mpm import engine
+    from codesign_mpm.engine import simulator as engine  # where the simulator reads these limits
 
     wx = np.zeros((sim.n, 3))
     monkeypatch.setattr(engine, "GRID_STORE_MARGIN", 0.1)  # records far under any box
@@ -198,7 +198,7 @@ def test_grid_records_grow_to_the_largest_box_a_backward_pass_saw(sim, actions, 
 
 def test_gradients_are_the_same_with_checkpoints_in_a_file(sim, actions, weights, monkeypatch):
     """Checkpoints past CHECKPOINT_MEMORY_BYTES go to a temporary file and come back bit for bit."""
-    from codesign_mpm import engine
+    from codesign_mpm.engine import simulator as engine  # where the simulator reads these limits
 
     wx = np.random.default_rng(5).normal(size=(sim.n, 3)) / sim.n
     in_memory = gradients(sim, actions, weights, wx, checkpoint_every=3)

@@ -3,7 +3,7 @@ program with too many freed ones recycled once no simulator is alive (bounded me
 import numpy as np
 
 from codesign_mpm import BodySpec, Scene, ShapeSpec, build_particles, runtime
-from codesign_mpm import engine
+from codesign_mpm.engine import storage as engine  # the pool of compiled storages
 from codesign_mpm.engine import Simulator
 
 SCENE = Scene(size=[0.5, 0.5, 0.5], dx=1 / 24, bodies=[BodySpec(shape=ShapeSpec(size=[0.12, 0.12, 0.12]),

@@ -1,0 +1,426 @@
+"""Stress and deformation update of every particle: the materials' Taichi functions called per
+model, the muscles, and the hand-written adjoints of the neo-Hookean stress, the plastic return
+mapping and the muscle.
+
+Only what the scene uses is compiled: the material models present (their return mappings,
+the plastic volume ratio J_p of snow), the muscle term when the scene has actuators, the
+terrain projection when there is terrain (`ti.static`).
+
+Scenes with non-elastic materials and differentiable layouts first run one small kernel per
+material run (`_constitutive_update`: return mapping, stress, muscle), and p2g only scatters;
+elastic-only forward scenes compute the stress inside p2g (`_update`). Adjoints: the neo-Hookean
+stress (the robots' default, muscle included) has a hand-written one (`_neo_hookean_adjoint`),
+and so have the plastic models' eigenframe algebra (`_plastic_adjoint_front/back`, with
+Taichi's reverse mode of `_spectral_map` between them). Taichi differentiates the rest: the
+other elastic models' and water's stresses (`_constitutive_update.grad`).
+
+`_Constitutive` is a part of the engine's storage class (`storage._Storage`).
+"""
+# (no `from __future__ import annotations`: Taichi reads kernel annotations at runtime)
+
+import taichi as ti
+
+from codesign_mpm.materials import ID, MATERIALS, MIN_HARDENING
+
+MODEL_NAMES = {m.id: m.name for m in MATERIALS.values()}
+J_MIN = 0.1  # below this, neo-Hookean log(J) continues linearly (finite for J <= 0)
+DRIVE_CHUNK = 256  # particles whose action gradients one thread adds up before its one atomic add
+NORM_FLOOR = 1e-30  # |dev eps|^2 below this is treated as this (only reached where the result is masked off)
+
+
+class _Constitutive:
+    """Stress, return mapping, muscles and their adjoints (a mixin of `storage._Storage`)."""
+
+    @ti.func
+    def _lame(self, p):
+        """Particle p's Lame parameters (mu, lambda) from its Young's modulus and Poisson's ratio."""
+        E, nu = self.E[p], self.nu[p]
+        return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+
+    @ti.func
+    def _trial(self, p, s):
+        """Particle p's trial deformation (I + dt C) F from slot s, before any return mapping."""
+        return (ti.Matrix.identity(float, 3) + self._dt(p) * self.C[s, p]) @ self.F[s, p]
+
+    @ti.func
+    def _add_trial_grad(self, p, s, F_bar, C_bar):
+        """Adjoint of `_trial`: add the trial F's gradient F_bar to F's and C's at slot s, and C_bar
+        (C's gradient through other terms) to C's; p is this iteration's alone (plain adds)."""
+        C, F_s = self.C[s, p], self.F[s, p]
+        dt = self._dt(p)
+        self.F.grad[s, p] = self.F.grad[s, p] + (ti.Matrix.identity(float, 3) + dt * C).transpose() @ F_bar
+        self.C.grad[s, p] = self.C.grad[s, p] + C_bar + dt * F_bar @ F_s.transpose()
+
+    @ti.func
+    def _cofactor(self, F):
+        """d det(F) / dF, the cofactor matrix (defined for singular F too)."""
+        cof = ti.Matrix.zero(float, 3, 3)
+        for i, j in ti.static(ti.ndrange(3, 3)):
+            cof[i, j] = (F[(i + 1) % 3, (j + 1) % 3] * F[(i + 2) % 3, (j + 2) % 3]
+                         - F[(i + 1) % 3, (j + 2) % 3] * F[(i + 2) % 3, (j + 1) % 3])
+        return cof
+
+    @ti.func
+    def _elastic_stress(self, model: ti.template(), F, mu, la):
+        """Kirchhoff stress tau = P F^T of one elastic model."""
+        I = ti.Matrix.identity(float, 3)
+        J = F.determinant()
+        tau = ti.Matrix.zero(float, 3, 3)
+        if ti.static(model == MATERIALS["neo_hookean"].id):
+            # volumetric Kirchhoff stress J psi'(J) with psi = lambda log(J)^2 / 2; below J_MIN psi
+            # continues as its quadratic Taylor polynomial, so J psi'(J) turns tensile for J < 0 and
+            # an inverted element is pulled back through J = 0 instead of pushed further
+            dpsi, _ = self._volumetric(J)
+            tau = mu * (F @ F.transpose() - I) + la * J * dpsi * I
+        elif ti.static(model == MATERIALS["corotated"].id):
+            R, _ = ti.polar_decompose(F)
+            tau = 2.0 * mu * (F - R) @ F.transpose() + la * (J - 1.0) * J * I
+        elif ti.static(model == MATERIALS["stvk"].id):
+            G = 0.5 * (F.transpose() @ F - I)
+            tau = F @ (2.0 * mu * G + la * G.trace() * I) @ F.transpose()
+        return tau
+
+    @ti.func
+    def _volumetric(self, J):
+        """Neo-Hookean's psi'(J) with psi = log(J)^2 / 2, continued below J_MIN by its quadratic Taylor
+        polynomial (see `_elastic_stress`), and the derivative of h(J) = J psi'(J) for the adjoint."""
+        slope = (1.0 - ti.log(J_MIN)) / J_MIN ** 2
+        dpsi = ti.log(ti.max(J, J_MIN)) / ti.max(J, J_MIN) + slope * ti.min(J - J_MIN, 0.0)
+        dh = ti.select(J > J_MIN, 1.0 / ti.max(J, J_MIN), ti.log(J_MIN) / J_MIN + slope * (2.0 * J - J_MIN))
+        return dpsi, dh
+
+    @ti.kernel
+    def _neo_hookean_adjoint(self, s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32, end: ti.i32):
+        """Reverse of `_constitutive_update` for neo-Hookean particles (the robots' default), written by
+        hand like the plastic one: tau = mu (F F^T - I) + lambda h(J) I (+ the muscle) at the trial
+        F = (I + dt C) F_s, with h(J) = J psi'(J) = log J above J_MIN and its quadratic continuation
+        below (`_elastic_stress`)."""
+        for p in range(start, end):
+            F = self._trial(p, s)
+            tau_bar = self.tau.grad[p]
+            F_bar = self.F.grad[so, p]
+            if ti.static(self.has_muscles):
+                F_bar += self._muscle_adjoint(p, F, t, tau_bar)
+            mu, la = self._lame(p)
+            J = F.determinant()
+            dpsi, dh = self._volumetric(J)
+            trace_bar = tau_bar.trace()
+            F_bar += mu * (tau_bar + tau_bar.transpose()) @ F + la * dh * trace_bar * self._cofactor(F)
+            mu_bar = ((F @ F.transpose() - ti.Matrix.identity(float, 3)) * tau_bar).sum()
+            nu = self.nu[p]
+            self.E.grad[p] = self.E.grad[p] + mu_bar / (2.0 * (1.0 + nu)) + J * dpsi * trace_bar * nu / (
+                (1.0 + nu) * (1.0 - 2.0 * nu))
+            self._add_trial_grad(p, s, F_bar, ti.Matrix.zero(float, 3, 3))
+
+    @ti.func
+    def _plastic(self, model: ti.template(), p, s, so, F, mu, la):
+        """Return mapping of one plastic model in principal Hencky strain (see `_spectral`):
+        the projected F and its Kirchhoff stress, assembled in the eigenframe."""
+        Q0, P, A, a = self._eigenframe(p, F)
+        g, g_slope, k, k_slope = self._spectral(model, p, s, so, a, mu, la, True)
+        F_new = F + Q0 @ (self._principal(A, a, g, g_slope) @ P)
+        return F_new, Q0 @ self._principal(A, a, k, k_slope) @ Q0.transpose()
+
+    @ti.func
+    def _spectral(self, model: ti.template(), p, s, so, a, mu, la, write_jp: ti.template()):
+        """One plastic model's map of b's principal values a: (g, g', k, k'), with g = exp(eps_new -
+        eps) - 1 the projection's scale less one and k the principal Kirchhoff stress, each with its
+        slope in a_i (used where eigenvalues coincide). Snow also updates J_p (written to slot so
+        if `write_jp`). The eigenframe algebra around it has a hand-written adjoint
+        (`_plastic_adjoint_front/back`); Taichi differentiates only this map (`_spectral_map`).
+
+        Works in principal Hencky strain eps = log(sigma). F changes only when the trial
+        state lies outside the model's elastic region (for snow: a stretch outside its
+        bounds), so a body loaded below yield springs back without permanent set. Written
+        without branches or reassigned locals (masks select the case): Taichi's reverse mode
+        turns locals assigned in branches into stacks.
+
+        The Hencky models map eps affinely per particle, eps_new = alpha eps + beta (alpha = 1
+        inside the yield surface, |radius| / |dev eps| on it, 0 at the apex), so the stress
+        k_i = 2 mu eps_new_i + lambda tr(eps_new) has the slope mu alpha / a_i and the
+        projection's scale exp(eps_new_i - eps_i) the slope scale_i (alpha - 1) / (2 a_i).
+        """
+        eps = 0.5 * ti.log(a)
+        tr = eps.sum()
+        dev = eps - tr / 3.0
+        n2 = dev.dot(dev)
+        prm = self.params[p]
+        eps_new = eps
+        alpha = 1.0
+        if ti.static(model == ID["sand"]):
+            # Drucker-Prager (Klar et al. 2016): |dev tau| <= -alpha tr(tau) around the apex set by
+            # the cohesion; expansion beyond the apex loses all elastic strain (no tension).
+            tip = 3.0 * prm[1] / (3.0 * la + 2.0 * mu)  # tr(eps) at the apex
+            slope = prm[0] * (3.0 * la + 2.0 * mu) / (2.0 * mu)
+            apex = ti.cast(tr > tip, float)
+            cone = (1.0 - apex) * ti.cast(n2 > (slope * (tip - tr)) ** 2, float)
+            shrink = slope * (tip - tr) / ti.sqrt(ti.max(n2, NORM_FLOOR))
+            eps_new = eps + apex * (tip / 3.0 - eps) + cone * (tr / 3.0 + shrink * dev - eps)
+            alpha = 1.0 - apex + cone * (shrink - 1.0)
+        elif ti.static(model == ID["clay"] or model == ID["mud"]):
+            # von Mises: |dev tau| = 2 mu |dev eps| <= sqrt(2/3) yield stress
+            radius = ti.sqrt(2.0 / 3.0) * prm[0] / (2.0 * mu)
+            outside = ti.cast(n2 > radius * radius, float)
+            shrink = radius / ti.sqrt(ti.max(n2, radius * radius))
+            eps_new = eps + outside * (tr / 3.0 + shrink * dev - eps)
+            alpha = 1.0 + outside * (shrink - 1.0)
+        elif ti.static(model == ID["snow"]):
+            # Stomakhin et al. 2013: principal stretches clamped to [1 - theta_c, 1 + theta_s]
+            eps_new = ti.min(ti.max(eps, ti.log(1.0 - prm[0])), ti.log(1.0 + prm[1]))
+        # exp(0) - 1 == 0 exactly (with zero slope): an unprojected F is stored unchanged, bit for bit
+        scale = ti.exp(eps_new - eps)
+        scale_slope = scale * (alpha - 1.0) / (2.0 * a)
+        k = ti.Vector.zero(float, 3)
+        k_slope = mu * alpha / a
+        if ti.static(model == ID["snow"]):
+            # neo-Hookean with both moduli hardened by exp(xi (1 - J_p)), bounded to keep the
+            # wave speed (and so the time step) and the gradients bounded; F_new F_new^T has
+            # the clamped eigenvalues exp(2 eps_new)
+            inside = ti.cast(eps == eps_new, float)
+            scale_slope = -(1.0 - inside) * scale / (2.0 * a)
+            jp = self.Jp[s, p] * ti.exp((eps - eps_new).sum())
+            if ti.static(write_jp):
+                self.Jp[so, p] = jp
+            h = ti.min(ti.max(ti.exp(prm[2] * (1.0 - jp)), MIN_HARDENING), prm[3])
+            k = h * (mu * (ti.exp(2.0 * eps_new) - 1.0) + la * eps_new.sum())
+            k_slope = h * mu * inside
+        else:  # Hencky: tau = 2 mu eps + lambda tr(eps) I, in the principal frame
+            k = 2.0 * mu * eps_new + la * eps_new.sum()
+        return scale - 1.0, scale_slope, k, k_slope
+
+    @ti.kernel
+    def _spectral_map(self, model: ti.template(), s: ti.i32, so: ti.i32, start: ti.i32, end: ti.i32):
+        """A Hencky model's map (`_spectral`) from `strain` to `spectral`, in a kernel of its own so
+        that Taichi's reverse mode differentiates it alone: the eigenframe algebra around it took
+        over a minute to compile in reverse mode, the map well under a second."""
+        for p in range(start, end):
+            mu, la = self._lame(p)
+            g, g_slope, k, k_slope = self._spectral(model, p, s, so, self.strain[p], mu, la, True)
+            self.spectral[p] = self._stack(g, g_slope, k, k_slope)
+
+    @ti.kernel
+    def _plastic_adjoint_front(self, model: ti.template(), s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32,
+                               end: ti.i32):
+        """Reverse of a Hencky model's `_constitutive_update` (written by hand, as a forward kernel),
+        first part: from the gradients of the stored F (slot so) and of the stress (muscle included)
+        to those of the model's map (`spectral.grad`), part of its input's (`strain.grad`, which
+        `_spectral_map.grad` completes) and of the trial F (`F_bar_part`, `A_off_bar`).
+
+        F_new = F + Q0 M1 P and tau = Q0 M2 Q0^T: with G = Q0^T dL/dF_new, M1's gradient is G P^T,
+        P's gets M1 G, and M2's is Q0^T dL/dtau Q0."""
+        for p in range(start, end):
+            F = self._trial(p, s)
+            mu, la = self._lame(p)
+            Q0, P, A, a = self._eigenframe(p, F)
+            g, g_slope, k, k_slope = self._spectral(model, p, s, so, a, mu, la, False)
+            M1 = self._principal(A, a, g, g_slope)
+            tau_bar = self.tau.grad[p]
+            Fn_bar = self.F.grad[so, p]
+            if ti.static(self.has_muscles):
+                Fn_bar += self._muscle_adjoint(p, F + Q0 @ (M1 @ P), t, tau_bar)
+            G = Q0.transpose() @ Fn_bar
+            g_bar, g_slope_bar, a_bar, off_bar = self._principal_adjoint(G @ P.transpose(), A, a, g, g_slope)
+            k_bar, k_slope_bar, a_bar2, off_bar2 = self._principal_adjoint(Q0.transpose() @ tau_bar @ Q0, A, a, k,
+                                                                           k_slope)
+            self.strain[p] = a
+            self.strain.grad[p] = a_bar + a_bar2
+            self.spectral.grad[p] = self._stack(g_bar, g_slope_bar, k_bar, k_slope_bar)
+            self.F_bar_part[p] = Fn_bar + Q0 @ (M1 @ G)
+            self.A_off_bar[p] = off_bar + off_bar2
+
+    @ti.kernel
+    def _plastic_adjoint_back(self, model: ti.template(), s: ti.i32, start: ti.i32, end: ti.i32):
+        """Last part of the hand-written reverse (after `_spectral_map.grad`): through A = P P^T and
+        a = max(diag A, J_MIN^2) to P, then to the trial F = (I + dt C) F_s and on to F_s and C
+        (mud's viscous stress J eta (C + C^T) included)."""
+        for p in range(start, end):
+            C, F = self.C[s, p], self._trial(p, s)
+            Q0, P, A, a = self._eigenframe(p, F)
+            a_bar = self.strain.grad[p]
+            off = self.A_off_bar[p]
+            A_bar = ti.Matrix([[a_bar[0] * ti.cast(A[0, 0] > J_MIN * J_MIN, float), off[0], off[1]],
+                               [0.0, a_bar[1] * ti.cast(A[1, 1] > J_MIN * J_MIN, float), off[2]],
+                               [0.0, 0.0, a_bar[2] * ti.cast(A[2, 2] > J_MIN * J_MIN, float)]])
+            F_bar = self.F_bar_part[p] + Q0 @ ((A_bar + A_bar.transpose()) @ P)
+            C_bar = ti.Matrix.zero(float, 3, 3)
+            if ti.static(model == ID["mud"]):
+                tau_bar, eta = self.tau.grad[p], self.params[p][1]
+                F_bar += eta * ((C + C.transpose()) * tau_bar).sum() * self._cofactor(F)
+                C_bar += F.determinant() * eta * (tau_bar + tau_bar.transpose())
+            self._add_trial_grad(p, s, F_bar, C_bar)
+
+    @ti.func
+    def _constitutive(self, model: ti.template(), p, s, so):
+        """(F to store, Kirchhoff stress without muscle) of particle p of `model`, from slot s."""
+        C = self.C[s, p]
+        F = self._trial(p, s)
+        mu, la = self._lame(p)
+        F_new = F
+        tau = ti.Matrix.zero(float, 3, 3)
+        if ti.static(not MATERIALS[MODEL_NAMES[model]].plastic):
+            tau = self._elastic_stress(model, F, mu, la)
+        elif ti.static(model == ID["water"]):
+            # weakly compressible: Cauchy pressure K (1 - J); only J is state, so F is reset to
+            # the isotropic J^(1/3) I (shear would otherwise accumulate without any stress)
+            J = F.determinant()
+            tau = self.params[p][0] * J * (J - 1.0) * ti.Matrix.identity(float, 3)
+            F_new = ti.exp(ti.log(ti.max(J, J_MIN)) / 3.0) * ti.Matrix.identity(float, 3)
+        else:
+            F_new, tau = self._plastic(model, p, s, so, F, mu, la)
+        if ti.static(model == ID["water"] or model == ID["mud"]):
+            # Newtonian viscosity, tau = J eta (grad v + grad v^T), with the APIC C as grad v
+            tau += F.determinant() * self.params[p][1] * (C + C.transpose())
+        return F_new, tau
+
+    @ti.func
+    def _update(self, p, s, so):
+        """Elastic-only scenes: (new F, stress) with the model chosen per particle."""
+        F_new = ti.Matrix.zero(float, 3, 3)
+        tau = ti.Matrix.zero(float, 3, 3)
+        if ti.static(len(self.models) == 1):
+            F_new, tau = self._constitutive(self.models[0], p, s, so)
+        else:
+            for model in ti.static(self.models):
+                if self.material[p] == model:
+                    F_new, tau = self._constitutive(model, p, s, so)
+        return F_new, tau
+
+    @ti.kernel
+    def _stress(self, model: ti.template(), s: ti.i32, scratch: ti.i32, t: ti.i32, start: ti.i32, end: ti.i32,
+                out: ti.types.ndarray()):
+        """Kirchhoff stress that the next substep applies to particles [start, end) of one model
+        (constitutive at the trial F, plus the muscle at action row t); forward only. State a
+        plastic model writes (snow's J_p) goes to the `scratch` slot."""
+        for p in range(start, end):
+            if ti.static(MATERIALS[MODEL_NAMES[model]].plastic and model != ID["water"]):
+                self.frame[p] = self._frame(s, p)
+            F, tau = self._constitutive(model, p, s, scratch)
+            if ti.static(self.has_muscles):
+                tau += self._muscle_stress(p, F, t)
+            for i, j in ti.static(ti.ndrange(3, 3)):
+                out[p, i, j] = tau[i, j]
+
+    @ti.func
+    def _constitutive_particle(self, model: ti.template(), p, s, so, t):
+        F, tau = self._constitutive(model, p, s, so)
+        if ti.static(self.has_muscles):
+            tau += self._muscle_stress(p, F, t)
+        self.F[so, p] = F
+        self.tau[p] = tau
+
+    @ti.kernel
+    def _constitutive_update(self, model: ti.template(), s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32,
+                             end: ti.i32, j: ti.i32):
+        """Scenes with plastic models and differentiable layouts (`separate_stress`): F and stress
+        (muscle included, at action row t) of the particles [start, end) of one model, in their own
+        kernel ahead of p2g (one small kernel per model compiles far faster than all of them fused
+        into the 27-node scatter). `j`: the substep within the control step."""
+        for p in range(start, end):
+            if ti.static(self.batched):
+                if self._active(p, j):
+                    self._constitutive_particle(model, p, s, so, t)
+                else:
+                    self._hold_deformation(p, s, so)
+            else:
+                self._constitutive_particle(model, p, s, so, t)
+
+    @ti.func
+    def _hold_deformation(self, p, s, so):
+        """A batch member sitting out a substep carries its deformation into the next slot."""
+        self.F[so, p] = self.F[s, p]
+        if ti.static(self.has_jp):
+            self.Jp[so, p] = self.Jp[s, p]
+
+    @ti.func
+    def _muscle_stress(self, p, F, t):
+        """Kirchhoff stress of particle p's muscle at action row t (materials.MUSCLE_MODELS)."""
+        Ff = F @ self.fiber[p]
+        row = t
+        if ti.static(self.batched):  # forward only: one action row per member
+            row = self.member[p]
+        a = self.act[row].dot(self.muscle[p])
+        s = self.muscle_ratio[p] * self.E[p]
+        tau = s * a * Ff.outer_product(Ff)
+        if ti.static(self.muscle_model == "energy"):
+            tau = 4.0 * s * (Ff.dot(Ff) - 1.0 + a) * Ff.outer_product(Ff)
+        return tau
+
+    @ti.func
+    def _muscle_adjoint(self, p, F, t, tau_bar):
+        """Adjoint of `_muscle_stress` (action row t): adds the gradients of the fibre, the muscle
+        membership, E and the action row, and returns F's. With u = F f, a the activation, s the
+        stiffness and T the stress's gradient: active (s a u u^T) gives u: s a (T + T^T) u, a: s u.T u,
+        s: a u.T u; energy (4 s c u u^T, c = |u|^2 - 1 + a) gives u: 4 s (c (T + T^T) u + 2 (u.T u) u),
+        a: 4 s u.T u, s: 4 c u.T u."""
+        f = self.fiber[p]
+        u = F @ f
+        act = self.act[t]
+        a = act.dot(self.muscle[p])
+        s = self.muscle_ratio[p] * self.E[p]
+        q = u.dot(tau_bar @ u)
+        sym_u = (tau_bar + tau_bar.transpose()) @ u
+        u_bar = s * a * sym_u
+        a_bar = s * q
+        s_bar = a * q
+        if ti.static(self.muscle_model == "energy"):
+            c = u.dot(u) - 1.0 + a
+            u_bar = 4.0 * s * (c * sym_u + 2.0 * q * u)
+            a_bar = 4.0 * s * q
+            s_bar = 4.0 * c * q
+        if s != 0.0:  # particles without muscle contribute nothing
+            self.fiber.grad[p] = self.fiber.grad[p] + F.transpose() @ u_bar
+            self.muscle.grad[p] = self.muscle.grad[p] + a_bar * act
+            self.E.grad[p] = self.E.grad[p] + self.muscle_ratio[p] * s_bar
+        self.drive_bar[p] = a_bar  # the action row's gradient sums these (`_add_drive_grad`)
+        return u_bar.outer_product(f)
+
+    @ti.kernel
+    def _add_drive_grad(self, t: ti.i32, start: ti.i32, end: ti.i32):
+        """Action row t's gradient from the muscles of particles [start, end): sum_p drive_bar_p m_p,
+        added up in chunks of DRIVE_CHUNK particles, one atomic add per chunk (an atomic add per
+        particle onto one row serialises every thread on it)."""
+        for c in range((end - start + DRIVE_CHUNK - 1) // DRIVE_CHUNK):
+            total = ti.Vector.zero(float, ti.static(self.act.n))
+            for p in range(start + c * DRIVE_CHUNK, ti.min(end, start + (c + 1) * DRIVE_CHUNK)):
+                total += self.drive_bar[p] * self.muscle[p]
+            self.act.grad[t] += total
+
+    @ti.kernel
+    def _muscle_work(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32):
+        """Add the work the muscles did in substep s -> so: the force their stress put on the grid
+        nodes, f_i = -sum_p V_p tau_p (4 / dx^2) (x_i - x_p) w_ip, times the nodes' new velocities,
+        which is -dt sum_p V_p tau_p : C'_p with C' the velocity gradient g2p gathered (forward only)."""
+        for p in range(n):
+            tau = self._muscle_stress(p, self._trial(p, s), t)
+            self.work[None] += -self._dt(p) * self.vol[p] * (tau * self.C[so, p]).sum()
+
+    @ti.func
+    def _wave_speed(self, p, F):
+        """The fastest wave particle p carries in its current deformation F, for the CFL condition.
+
+        On the grid a particle's stiffness and mass both scale with its reference volume, so the
+        speed is sqrt(k / rho0) with k the tangent of its Kirchhoff stress in the velocity gradient.
+        Elastic models stiffen as they stretch: mu (F F^T - I)'s tangent (and the muscle's, of
+        s a (F f)(F f)^T) grows with b = F F^T's largest eigenvalue (StVK's with its square), and
+        lambda log J adds its tension: k = lambda (1 + max(log J, 0)) + (2 mu + m) lambda_max(b).
+        lambda_max(b) is bounded above by the smaller of Gershgorin's bound and
+        tr(b) / 3 + sqrt(2/3) |dev b| (exact at rest and in uniaxial states). At rest this is
+        the speed the scene's time step uses (`wave0`); plastic models and water keep that one
+        (their stresses are capped by their yield surfaces, hardening and bulk modulus)."""
+        speed = self.wave0[p]
+        model = self.material[p]
+        if model <= ti.static(ID["stvk"]):  # the elastic models
+            b = F @ F.transpose()
+            mean = b.trace() / 3.0
+            dev = b - mean * ti.Matrix.identity(float, 3)
+            gershgorin = 0.0
+            for i in ti.static(range(3)):
+                gershgorin = ti.max(gershgorin, ti.abs(b[i, 0]) + ti.abs(b[i, 1]) + ti.abs(b[i, 2]))
+            largest = ti.min(mean + ti.sqrt(2.0 / 3.0 * (dev * dev).sum()), gershgorin)
+            if model == ti.static(ID["stvk"]):
+                largest = largest * largest
+            mu, la = self._lame(p)
+            modulus = la * (1.0 + ti.max(ti.log(ti.max(F.determinant(), J_MIN)), 0.0)) + \
+                (2.0 * mu + self.wave_added[p]) * ti.max(largest, 1.0)
+            speed = ti.sqrt(modulus / self.rho[p])
+        return speed

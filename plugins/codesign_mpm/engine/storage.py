@@ -1,0 +1,338 @@
+"""Particle storage: the Taichi fields of one layout, its slots and their checkpoints' kernels,
+and the pool that shares compiled storages between simulators.
+
+Particle state lives in `slots`: two (ping-pong) for plain simulation, or S + 1 for a
+differentiable segment of S substeps. A differentiable rollout stores the state only at
+segment starts (checkpoints, `codesign_mpm.checkpoints`) and recomputes each segment in the
+backward pass, so memory grows with T/S + S rather than T substeps. That recompute keeps each
+substep's grid (the touched box, `grid._store_grid`) for the reverse pass, which then runs only
+the stress and grid_op again.
+
+`_Storage` is one class (Taichi compiles kernels per object) assembled from the engine's parts:
+`transfer._Transfers` (p2g, g2p, adjoints), `grid._Grid` (grid update, terrain, walls),
+`eigen._Eigen` (eigenframes) and `constitutive._Constitutive` (materials, muscles); it
+allocates every field they use, here, in one order (field ids key Taichi's offline cache).
+"""
+# (no `from __future__ import annotations`: Taichi reads kernel annotations at runtime)
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+from taichi.lang import impl
+
+from codesign_mpm import runtime
+from codesign_mpm.engine.constitutive import MODEL_NAMES, _Constitutive
+from codesign_mpm.engine.eigen import JACOBI_TOL_ULPS, _Eigen
+from codesign_mpm.engine.grid import _Grid
+from codesign_mpm.engine.transfer import _Transfers
+from codesign_mpm.materials import ID, MATERIALS, N_PARAMS
+
+CAPACITY_STEP = 1024  # particle storage is allocated in these steps so similar scenes share kernels
+MAX_FREE_STORAGES = 4  # compiled storages kept for reuse after their simulators close; older ones are freed
+MAX_DEAD_STORAGES = 32  # freed storages (their kernels stay compiled) before an idle program is recycled
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Everything the compiled kernels depend on. Simulators with equal layouts share them."""
+
+    capacity: int  # particle slots (the live count is a kernel argument)
+    n_actuators: int
+    slots: int  # particle states kept: 2 (ping-pong) or segment + 1 (differentiable)
+    rows: int  # action / probe rows: max_frames + 1
+    grid_shape: tuple[int, int, int]
+    models: tuple[int, ...]  # material models compiled in (ids of materials.MATERIALS)
+    has_muscles: bool
+    muscle_model: str
+    has_terrain: bool
+    boundary_cells: int
+    requires_grad: bool
+    scatter_copies: int = 1  # private grids p2g scatters into without atomics (runtime.scatter_copies)
+    members: int = 1  # scenes simulated side by side (codesign_mpm.batch); 1: a plain simulator
+    has_flip: bool = False  # FLIP's share in the elastic bodies' velocity update (scene.flip > 0)
+
+
+@ti.data_oriented
+class _Storage(_Transfers, _Grid, _Eigen, _Constitutive):
+    """Taichi fields and kernels for one layout.
+
+    Taichi compiles kernels per set of fields, so a fresh storage costs a compile (about 3 s
+    forward, about 2 minutes for the backward kernels on 2 CPU cores when the offline cache is
+    cold). Storages are therefore pooled by layout and handed to the next simulator that needs
+    the same one (see `_acquire`). Their fields live in one SNode tree of their own, so a
+    storage evicted from the pool gives its memory back (`free`).
+    """
+
+    def __init__(self, layout: Layout) -> None:
+        self.layout = layout
+        self.grid_shape = layout.grid_shape
+        self.models = layout.models
+        self.has_params = any(MATERIALS[MODEL_NAMES[m]].plastic for m in layout.models)
+        # the stress in kernels of its own ahead of p2g: plastic models (one small kernel per model
+        # compiles far faster than all of them fused into the scatter) and every differentiable
+        # layout (p2g's adjoint is then the scatter's alone, differentiated plane by plane)
+        self.separate_stress = self.has_params or layout.requires_grad
+        self.has_jp = ID["snow"] in layout.models  # snow's plastic volume ratio is part of the state
+        self.jacobi_tol = JACOBI_TOL_ULPS * float(np.finfo(np.float64 if impl.current_cfg().default_fp == ti.f64
+                                                           else np.float32).eps)
+        self.has_muscles = layout.has_muscles
+        self.muscle_model = layout.muscle_model
+        self.has_terrain = layout.has_terrain
+        self.boundary_cells = layout.boundary_cells
+        self.members = layout.members
+        self.batched = layout.members > 1
+        self.copies = layout.scatter_copies
+        self.private_scatter = layout.scatter_copies > 1
+        self.has_flip = layout.has_flip
+        # a private grid node: momentum, mass (and with FLIP the momentum before forces)
+        self.part_width = 7 if layout.has_flip else 4
+        # a batch's member grids lie side by side along x: member b owns nodes [b nx, (b + 1) nx)
+        self.grid_total = (layout.grid_shape[0] * layout.members,) + tuple(layout.grid_shape[1:])
+        n, K, gs, grad = layout.capacity, max(layout.n_actuators, 1), layout.grid_shape, layout.requires_grad
+        slots, rows = layout.slots, layout.rows
+        builder = ti.FieldsBuilder()
+
+        def placed(make, shape, differentiable=False):
+            """A field of `shape` in this storage's tree (with its gradient if asked and grad is on)."""
+            f = make(needs_grad=grad and differentiable)
+            node = builder.dense(ti.axes(*range(len(shape))), shape) if shape else builder
+            node.place(f, f.grad) if grad and differentiable else node.place(f)
+            return f
+
+        def vec(k, shape, differentiable=False):
+            return placed(lambda **kw: ti.Vector.field(k, float, **kw), shape, differentiable)
+
+        def mat(shape, differentiable=False):
+            return placed(lambda **kw: ti.Matrix.field(3, 3, float, **kw), shape, differentiable)
+
+        def scalar(shape, differentiable=False, dtype=float):
+            return placed(lambda **kw: ti.field(dtype, **kw), shape, differentiable)
+
+        self.x = vec(3, (slots, n), True)
+        self.v = vec(3, (slots, n), True)
+        self.C = mat((slots, n), True)
+        self.F = mat((slots, n), True)
+        self.vol = scalar((n,), True)
+        self.E = scalar((n,), True)
+        self.nu = scalar((n,))
+        self.rho = scalar((n,))
+        self.material = scalar((n,), dtype=ti.i32)
+        self.muscle = vec(K, (n,), True)
+        self.fiber = vec(3, (n,), True)
+        self.muscle_ratio = scalar((n,))
+        self.drive_bar = scalar((n,))  # d loss / d activation of each particle's muscle (the hand adjoints)
+        self.probe_w = scalar((n,))
+        self.act = vec(K, (rows,), True)
+        self.com_x = vec(3, (rows,), True)
+        self.com_v = vec(3, (rows,), True)
+        self.grid_v_in = vec(3, self.grid_total, True)
+        self.grid_m = scalar(self.grid_total, True)
+        self.grid_v_out = vec(3, self.grid_total, True)
+        if self.private_scatter:  # p2g's chunk c of the particles scatters into copy c; _sum_copies adds them
+            self.grid_part = vec(self.part_width, (self.copies,) + self.grid_total)
+        self.height = scalar((gs[0], gs[2]))
+        self.normal = vec(3, (gs[0], gs[2]))
+        # the node box touched by particles; scalar fields so the reduction stays thread-local
+        self.lo = [scalar((), dtype=ti.i32) for _ in range(3)]
+        self.hi = [scalar((), dtype=ti.i32) for _ in range(3)]
+        self.dt = scalar(())
+        self.dx = scalar(())
+        self.gravity = vec(3, ())
+        self.friction = scalar(())
+        self.n_bad = scalar((), dtype=ti.i32)
+        self.first_bad = scalar((), dtype=ti.i32)
+        self.max_speed = scalar(())
+        self.wave0 = scalar((n,))  # wave speed at rest (materials.model_wave_speed)
+        self.wave_added = scalar((n,))  # the axial modulus the muscle adds at rest
+        self.max_wave = scalar(())  # the largest wave speed plus particle speed of the current state
+        self.work = scalar(())  # the muscles' work since the reset (`Simulator.audit_work`)
+        if self.has_params:  # every non-elastic scene gets the same fields, so they share compiled kernels
+            self.params = vec(N_PARAMS, (n,))
+        if self.separate_stress:
+            self.tau = mat((n,), True)  # stress of the current substep, muscle included
+        if self.has_params:
+            self.frame = mat((n,))  # eigenvectors of b (no gradient)
+            self.Jp = scalar((slots, n), True)  # snow's plastic volume ratio
+        if self.has_params and grad:  # the plastic adjoint's hand-written and Taichi-differentiated parts meet here
+            self.strain = vec(3, (n,), True)  # b's principal values a, the input of _spectral_map
+            self.spectral = vec(12, (n,), True)  # its outputs (g, g', k, k')
+            self.F_bar_part = mat((n,))  # F's gradient from the eigenframe algebra, less the part through A
+            self.A_off_bar = vec(3, (n,))  # the gradient of A's off-diagonal (01, 02, 12)
+        if self.batched:  # last, so the fields above keep the ids (and cached kernels) of a plain layout
+            self.member = scalar((n,), dtype=ti.i32)  # which member each particle belongs to
+            self.member_dt = scalar((layout.members,))
+            self.member_substeps = scalar((layout.members,), dtype=ti.i32)  # per control step
+            self.member_speed = scalar((layout.members,))
+            self.member_wave = scalar((layout.members,))
+        if self.has_flip:  # last, as the batch's fields
+            self.grid_q = vec(3, self.grid_total, True)  # momentum before forces: sum w m (v + C (x_i - x_p))
+            self.grid_v_old = vec(3, self.grid_total, True)  # its velocity, grid_q / m (grid_op)
+            self.flip_ratio = scalar(())
+        self._tree = builder.finalize()
+
+    def free(self) -> None:
+        """Give the fields' memory back; the storage is unusable afterwards."""
+        self._tree.destroy()
+
+    @ti.kernel
+    def _load_state(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+                    C: ti.types.ndarray(), F: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                self.x[s, p][i] = x[p, i]
+                self.v[s, p][i] = v[p, i]
+                for j in ti.static(range(3)):
+                    self.C[s, p][i, j] = C[p, i, j]
+                    self.F[s, p][i, j] = F[p, i, j]
+
+    @ti.kernel
+    def _save_state(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+                    C: ti.types.ndarray(), F: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                x[p, i] = self.x[s, p][i]
+                v[p, i] = self.v[s, p][i]
+                for j in ti.static(range(3)):
+                    C[p, i, j] = self.C[s, p][i, j]
+                    F[p, i, j] = self.F[s, p][i, j]
+
+    @ti.kernel
+    def _save_x(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                x[p, i] = self.x[s, p][i]
+
+    @ti.kernel
+    def _save_grad(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+                   C: ti.types.ndarray(), F: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                x[p, i] = self.x.grad[s, p][i]
+                v[p, i] = self.v.grad[s, p][i]
+                for j in ti.static(range(3)):
+                    C[p, i, j] = self.C.grad[s, p][i, j]
+                    F[p, i, j] = self.F.grad[s, p][i, j]
+
+    @ti.kernel
+    def _add_grad(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+                  C: ti.types.ndarray(), F: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                self.x.grad[s, p][i] += x[p, i]
+                self.v.grad[s, p][i] += v[p, i]
+                for j in ti.static(range(3)):
+                    self.C.grad[s, p][i, j] += C[p, i, j]
+                    self.F.grad[s, p][i, j] += F[p, i, j]
+
+    @ti.kernel
+    def _load_jp(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        for p in range(n):
+            self.Jp[s, p] = jp[p]
+
+    @ti.kernel
+    def _save_jp(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        for p in range(n):
+            jp[p] = self.Jp[s, p]
+
+    @ti.kernel
+    def _save_jp_grad(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        for p in range(n):
+            jp[p] = self.Jp.grad[s, p]
+
+    @ti.kernel
+    def _add_jp_grad(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        for p in range(n):
+            self.Jp.grad[s, p] += jp[p]
+
+    @ti.kernel
+    def _copy_slot(self, src: ti.i32, dst: ti.i32, n: ti.i32):
+        for p in range(n):
+            self.x[dst, p] = self.x[src, p]
+            self.v[dst, p] = self.v[src, p]
+            self.C[dst, p] = self.C[src, p]
+            self.F[dst, p] = self.F[src, p]
+            if ti.static(self.has_jp):
+                self.Jp[dst, p] = self.Jp[src, p]
+
+    @ti.kernel
+    def _probe(self, s: ti.i32, t: ti.i32, n: ti.i32):
+        """Mass-weighted sums of the tracked particles' x and v (divided by their mass later)."""
+        for p in range(n):
+            m = self.probe_w[p] * self.vol[p]
+            self.com_x[t] += m * self.x[s, p]
+            self.com_v[t] += m * self.v[s, p]
+
+    @ti.kernel
+    def _check(self, s: ti.i32, n: ti.i32):
+        """Count particles that are non-finite or outside the grid (remember the first one), and
+        find the fastest particle and the fastest wave plus particle speed of this state."""
+        self.n_bad[None] = 0
+        self.first_bad[None] = n
+        self.max_speed[None] = 0.0
+        self.max_wave[None] = 0.0
+        if ti.static(self.batched):
+            for b in range(self.members):
+                self.member_speed[b] = 0.0
+                self.member_wave[b] = 0.0
+        for p in range(n):
+            x, v, F = self.x[s, p], self.v[s, p], self.F[s, p]
+            size = self.dx[None] * ti.Vector([self.grid_shape[0] - 1, self.grid_shape[1] - 1,
+                                              self.grid_shape[2] - 1])
+            magnitude = x.norm_sqr() + v.norm_sqr() + F.norm_sqr()
+            inside = (x >= 0).all() and (x <= size).all()
+            if not (magnitude < 1e30) or not inside:
+                self.n_bad[None] += 1
+                ti.atomic_min(self.first_bad[None], p)
+            wave = v.norm() + self._wave_speed(p, F)
+            if ti.static(self.batched):  # each member is checked against its own time step
+                ti.atomic_max(self.member_speed[self.member[p]], v.norm())
+                ti.atomic_max(self.member_wave[self.member[p]], wave)
+            else:
+                ti.atomic_max(self.max_speed[None], v.norm())
+                ti.atomic_max(self.max_wave[None], wave)
+
+
+_free: "OrderedDict[int, tuple[tuple[int, Layout], _Storage]]" = OrderedDict()  # released storages, oldest first
+_freed: list[tuple[int, _Storage]] = []  # (generation, storage) freed in this Taichi program
+_in_use: dict[int, int] = {}  # id -> generation of the storages of live simulators
+
+
+def _acquire(layout: Layout) -> _Storage:
+    """A storage for `layout`: a released one if there is one (no compile), else a new one."""
+    for key in [k for k, (wanted, _) in _free.items() if wanted[0] != runtime.generation]:
+        del _free[key]  # fields of an earlier Taichi program: already gone
+    for key, (wanted, storage) in reversed(_free.items()):
+        if wanted == (runtime.generation, layout):
+            del _free[key]
+            break
+    else:
+        storage = _Storage(layout)
+    _in_use[id(storage)] = runtime.generation
+    return storage
+
+
+def _release(generation: int, storage: _Storage) -> None:
+    """Keep a closed simulator's storage for reuse, freeing the oldest beyond MAX_FREE_STORAGES."""
+    _in_use.pop(id(storage), None)
+    if generation != runtime.generation:
+        return
+    _free[id(storage)] = ((generation, storage.layout), storage)
+    while len(_free) > MAX_FREE_STORAGES:
+        _, (_, oldest) = _free.popitem(last=False)
+        oldest.free()
+        # Taichi keys a data-oriented object's compiled kernels by the object's id(): keep the
+        # (now empty) object alive so no new storage can take its id and run its stale kernels
+        _freed.append((generation, oldest))
+
+
+def _recycle_program() -> None:
+    """Start a fresh Taichi program once more than MAX_DEAD_STORAGES storages were freed in this
+    one and no simulator is alive: Taichi keeps every storage's compiled kernels until a reset,
+    so without this a long sweep over many layouts would grow without bound."""
+    _freed[:] = [entry for entry in _freed if entry[0] == runtime.generation]
+    if len(_freed) > MAX_DEAD_STORAGES and runtime.generation not in _in_use.values():
+        runtime.reset()
+        _freed.clear()
+
