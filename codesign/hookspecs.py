@@ -33,6 +33,18 @@ def codesign_register(registry: PluginRegistrar) -> None:
 
 
 @hookspec
+def codesign_register_materials() -> list[str]:
+    """Return the dotted names of modules that each add one material model to the MPM engine.
+
+    Each module defines ``MODEL``, a ``codesign_mpm.materials.MaterialModel`` (its parameters,
+    wave speed and Taichi stress or return mapping; see docs/plugins.md). The models are listed
+    with the components (kind ``material``) and named by scenes (``material.kind``); the engine
+    gives them ids after its own. Keep the modules light: they are imported when the registry
+    is built (``codesign_mpm.materials.ti`` defers Taichi until a kernel is compiled).
+    """
+
+
+@hookspec
 def codesign_cli(app: typer.Typer) -> None:
     """Add commands (``app.command()``) or command groups (``app.add_typer()``) to the CLI."""
 

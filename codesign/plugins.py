@@ -52,6 +52,16 @@ class PluginManager(pluggy.PluginManager):
         for impl in reversed(self.hook.codesign_register.get_hookimpls()):
             registrar = PluginRegistrar(registry, impl.plugin_name, self.distributions.get(impl.plugin_name))
             impl.function(**({"registry": registrar} if "registry" in impl.argnames else {}))
+        for impl in reversed(self.hook.codesign_register_materials.get_hookimpls()):
+            registrar = PluginRegistrar(registry, impl.plugin_name, self.distributions.get(impl.plugin_name))
+            for module_name in impl.function():
+                try:
+                    model = importlib.import_module(module_name).MODEL
+                except (ImportError, AttributeError) as exc:
+                    raise PluginError(f"plugin '{impl.plugin_name}': material module '{module_name}' "
+                                      f"(a module defining MODEL) could not be loaded: {exc}") from exc
+                registrar.add("material", model.name, f"{module_name}:MODEL", f"{module_name}:MODEL.config",
+                              model.description)
         return registry
 
 

@@ -17,6 +17,11 @@ from typing import Any
 from codesign.errors import RegistryError
 
 KINDS: tuple[str, ...] = ("environment", "representation", "controller", "optimizer")
+"""The recipe's sections: one component of each kind makes a run."""
+EXTENSION_KINDS: tuple[str, ...] = ("material",)
+"""Kinds listed with the components but not recipe sections: material models of the MPM engine
+(``codesign_register_materials``), which a scene names."""
+ALL_KINDS = KINDS + EXTENSION_KINDS
 
 #: A ``"module:attr"`` reference, or the object itself when laziness is not needed.
 Ref = str | Callable[..., Any]
@@ -70,7 +75,7 @@ class Registry:
     """All components known to this process, by kind and name."""
 
     def __init__(self) -> None:
-        self._entries: dict[str, dict[str, Entry]] = {kind: {} for kind in KINDS}
+        self._entries: dict[str, dict[str, Entry]] = {kind: {} for kind in ALL_KINDS}
 
     def add(
         self,
@@ -108,12 +113,12 @@ class Registry:
 
     def entries(self, kind: str | None = None) -> list[Entry]:
         """Entries of one kind (or all), sorted by kind order then name."""
-        kinds = KINDS if kind is None else (kind,)
+        kinds = ALL_KINDS if kind is None else (kind,)
         return [self._table(k)[n] for k in kinds for n in sorted(self._table(k))]
 
     def _table(self, kind: str) -> dict[str, Entry]:
         if kind not in self._entries:
-            raise RegistryError(f"unknown kind '{kind}'; {suggest(kind, KINDS)}known: {', '.join(KINDS)}")
+            raise RegistryError(f"unknown kind '{kind}'; {suggest(kind, ALL_KINDS)}known: {', '.join(ALL_KINDS)}")
         return self._entries[kind]
 
 

@@ -38,6 +38,14 @@ def codesign_register(registry: PluginRegistrar) -> None:
 
 
 @hookimpl
+def codesign_register_materials() -> list[str]:
+    """The engine's own material models, listed like a plugin's (`codesign plugins`)."""
+    from codesign_mpm.materials import BUILTIN
+
+    return [f"codesign_mpm.materials.{name}" for name in BUILTIN]
+
+
+@hookimpl
 def codesign_render_run(run_dir: Path, camera: str, fps: int, progress: bool) -> Path | None:
     """`render.enabled: true` in a recipe: its best episode to best/episode.mp4 (MPM environments only)."""
     from codesign.runner import load_run_data

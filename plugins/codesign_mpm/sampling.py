@@ -19,7 +19,7 @@ import numpy as np
 from codesign.bodies import Body, BodyError, Labels, library_body, load_body
 from codesign.geometry import grid_partition
 from codesign_mpm.integrity import MIN_THICKNESS_CELLS, thinnest_cells
-from codesign_mpm.materials import MATERIALS, pack_params
+from codesign_mpm.materials import MATERIALS, load_plugin_materials, spec_params
 from codesign_mpm.scene import BodySpec, Scene, SceneError, ShapeSpec
 from codesign_mpm.terrain import height_map
 
@@ -38,7 +38,7 @@ class Particles:
     muscle: np.ndarray  # (N,K) membership r_p
     fiber: np.ndarray  # (N,3) unit fibre direction f_p
     muscle_ratio: np.ndarray  # (N,) muscle stiffness s_p / E_p
-    params: np.ndarray  # (N, N_PARAMS) parameters of the non-elastic models (materials.pack_params)
+    params: np.ndarray  # (N, N_PARAMS) parameters of the non-elastic models (materials.spec_params)
     body: np.ndarray  # (N,) index of the body in scene.bodies
     robot: np.ndarray  # (N,) bool
 
@@ -162,6 +162,8 @@ def build_particles(scene: Scene) -> Particles:
     Particles keep the order of `scene.bodies`; layers are sampled last (they fill the space
     the others leave) but still stored in their place in that order.
     """
+    if any(body.material.kind not in MATERIALS for body in scene.bodies):
+        load_plugin_materials()  # a plugin's model (validate_scene loads them too)
     by_body: dict[int, dict[str, np.ndarray]] = {}
     for i, body in enumerate(scene.bodies):
         if body.shape.kind != "layer":
@@ -281,8 +283,7 @@ def _body_labels(scene: Scene, key: str, shape: ShapeSpec, local: np.ndarray) ->
 def _fields(i: int, body: BodySpec, x: np.ndarray, volume: float, muscle: np.ndarray, fiber: np.ndarray,
             ratio: float) -> dict[str, np.ndarray]:
     n, mat = len(x), body.material
-    params = pack_params(mat.kind, mat.friction_angle, mat.cohesion, mat.yield_stress, mat.critical_compression,
-                         mat.critical_stretch, mat.hardening, mat.max_hardening, mat.bulk_modulus, mat.viscosity)
+    params = spec_params(mat)
     return dict(
         x=x, v=np.tile(np.asarray(body.velocity, dtype=float), (n, 1)), volume=np.full(n, volume),
         density=np.full(n, mat.density), youngs_modulus=np.full(n, mat.youngs_modulus),

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import Dict, List, Optional
 
 from codesign.bodies import LIBRARY_BODIES
+from codesign_mpm import materials
 from codesign_mpm.materials import MATERIALS, MUSCLE_MODELS, material_names
 
 SHAPE_KINDS = ("box", "sphere", "ellipsoid", "capsule", "mesh", "points", "voxels", "body", "layer")
@@ -45,7 +46,9 @@ class MaterialSpec:
     """A constitutive model by name with its parameters (scene units).
 
     E and nu set the elastic response of every model except water (which uses
-    `bulk_modulus`); the other fields matter only to the models named in their comment.
+    `bulk_modulus`); the other fields matter only to the models named in their comment. A
+    plugin's model (docs/plugins.md) takes its own parameters from `parameters`. Each model's
+    module in `codesign_mpm.materials` defines its parameters' defaults and valid ranges.
     """
 
     kind: str = "neo_hookean"
@@ -61,6 +64,7 @@ class MaterialSpec:
     max_hardening: float = 10.0  # snow: bound on that factor (keeps the step and gradients bounded)
     bulk_modulus: float = 1.0e5  # water: K, pressure K (1 - J); sound speed sqrt(K / rho)
     viscosity: float = 0.0  # water, mud: dynamic viscosity
+    parameters: Dict[str, float] = field(default_factory=dict)  # a plugin model's own parameters, by name
 
 
 @dataclass
@@ -190,6 +194,7 @@ def validate_scene(scene: Scene) -> None:
         _fail("terrain.slope_deg", t.slope_deg, "must be in [-60, 60] degrees")
     if not scene.bodies:
         _fail("bodies", [], "a scene needs at least one body")
+    materials.load_plugin_materials()  # scenes may name the models of plugins
     robots = [b.name for b in scene.bodies if b.robot]
     if len(robots) > 1:
         _fail("bodies", robots, "at most one body may be the robot")
@@ -259,18 +264,16 @@ def _validate_body(key: str, body: BodySpec) -> None:
 
 
 def _validate_plasticity(key: str, mat: MaterialSpec) -> None:
-    """Ranges of the non-elastic parameters; checked whatever the kind, so typos surface early."""
-    checks = (
-        ("friction_angle", mat.friction_angle, 0 <= mat.friction_angle <= 80, "must be in [0, 80] degrees"),
-        ("cohesion", mat.cohesion, mat.cohesion >= 0, "must be >= 0"),
-        ("yield_stress", mat.yield_stress, mat.yield_stress > 0, "must be > 0"),
-        ("critical_compression", mat.critical_compression, 0 < mat.critical_compression < 1, "must be in (0, 1)"),
-        ("critical_stretch", mat.critical_stretch, mat.critical_stretch > 0, "must be > 0"),
-        ("hardening", mat.hardening, mat.hardening >= 0, "must be >= 0"),
-        ("max_hardening", mat.max_hardening, 1 <= mat.max_hardening <= 100, "must be in [1, 100]"),
-        ("bulk_modulus", mat.bulk_modulus, mat.bulk_modulus > 0, "must be > 0"),
-        ("viscosity", mat.viscosity, mat.viscosity >= 0, "must be >= 0"),
-    )
-    for name, value, ok, allowed in checks:
-        if not (ok and math.isfinite(value)):
-            _fail(f"{key}.{name}", value, allowed)
+    """Ranges of the models' parameters (each model's module defines its own): the fields of
+    MaterialSpec whatever the kind, so typos surface early; `parameters` against the kind's own."""
+    for name, parameter in materials.parameters().items():
+        if hasattr(mat, name):
+            value = getattr(mat, name)
+            if not (parameter.check(value) and math.isfinite(value)):
+                _fail(f"{key}.{name}", value, parameter.allowed)
+    own = {p.name: p for p in MATERIALS[mat.kind].parameters if not hasattr(mat, p.name)}
+    for name, value in (mat.parameters or {}).items():
+        if name not in own:
+            _fail(f"{key}.parameters.{name}", value, f"{mat.kind} takes {', '.join(sorted(own)) or 'no parameters here'}")
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and own[name].check(value)):
+            _fail(f"{key}.parameters.{name}", value, own[name].allowed)

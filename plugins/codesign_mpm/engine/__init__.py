@@ -16,16 +16,21 @@ Where things live (docs/engine.md has the longer tour):
 
 Importing this package imports Taichi; `codesign_mpm` itself loads it on first use of `Simulator`.
 """
-from codesign_mpm.engine.constitutive import J_MIN, MODEL_NAMES
+from codesign_mpm import materials
+
+materials.load_plugin_materials()  # plugins' models get their ids before any kernel is compiled
+
+from codesign_mpm.engine.constitutive import J_MIN, MODEL_NAMES  # noqa: E402
 from codesign_mpm.engine.eigen import JACOBI_EPS, JACOBI_SWEEPS, JACOBI_TOL_ULPS
 from codesign_mpm.engine.grid import MASS_EPS
 from codesign_mpm.engine.simulator import (ADAPTIVE_CFL_FACTOR, CHECKPOINT_MEMORY_BYTES, GRID_STORE_BYTES,
-                                           GRID_STORE_MARGIN, HENCKY_PLASTIC, MAX_ADAPTIVE_CFL, Gradients, Rollout,
+                                           GRID_STORE_MARGIN, MAX_ADAPTIVE_CFL, Gradients, Rollout,
                                            SimulationError, Simulator, State, TimeStep, time_step, wave_speeds)
 from codesign_mpm.engine.storage import CAPACITY_STEP, MAX_DEAD_STORAGES, MAX_FREE_STORAGES, Layout
-from codesign_mpm.engine.transfer import FLIP_MODELS
+from codesign_mpm.engine.transfer import flip_models
 
-__all__ = ["ADAPTIVE_CFL_FACTOR", "CAPACITY_STEP", "CHECKPOINT_MEMORY_BYTES", "FLIP_MODELS", "GRID_STORE_BYTES",
-           "GRID_STORE_MARGIN", "Gradients", "HENCKY_PLASTIC", "JACOBI_EPS", "JACOBI_SWEEPS", "JACOBI_TOL_ULPS",
+__all__ = ["ADAPTIVE_CFL_FACTOR", "CAPACITY_STEP", "CHECKPOINT_MEMORY_BYTES", "GRID_STORE_BYTES",
+           "GRID_STORE_MARGIN", "Gradients", "JACOBI_EPS", "JACOBI_SWEEPS", "JACOBI_TOL_ULPS",
            "J_MIN", "Layout", "MASS_EPS", "MAX_ADAPTIVE_CFL", "MAX_DEAD_STORAGES", "MAX_FREE_STORAGES", "MODEL_NAMES",
-           "Rollout", "SimulationError", "Simulator", "State", "TimeStep", "time_step", "wave_speeds"]
+           "Rollout", "SimulationError", "Simulator", "State", "TimeStep", "flip_models", "time_step",
+           "wave_speeds"]

@@ -9,7 +9,8 @@ terrain projection when there is terrain (`ti.static`).
 Scenes with non-elastic materials and differentiable layouts first run one small kernel per
 material run (`_constitutive_update`: return mapping, stress, muscle), and p2g only scatters;
 elastic-only forward scenes compute the stress inside p2g (`_update`). Adjoints: the neo-Hookean
-stress (the robots' default, muscle included) has a hand-written one (`_neo_hookean_adjoint`),
+stress (the robots' default, muscle included) has a hand-written one (`_elastic_adjoint` with
+`materials.neo_hookean.stress_adjoint`),
 and so have the plastic models' eigenframe algebra (`_plastic_adjoint_front/back`, with
 Taichi's reverse mode of `_spectral_map` between them). Taichi differentiates the rest: the
 other elastic models' and water's stresses (`_constitutive_update.grad`).
@@ -20,12 +21,10 @@ other elastic models' and water's stresses (`_constitutive_update.grad`).
 
 import taichi as ti
 
-from codesign_mpm.materials import ID, MATERIALS, MIN_HARDENING
+from codesign_mpm.materials import ID, MODEL_NAMES, cofactor, material, muscle  # noqa: F401 (MODEL_NAMES: re-exported)
+from codesign_mpm.materials.neo_hookean import J_MIN
 
-MODEL_NAMES = {m.id: m.name for m in MATERIALS.values()}
-J_MIN = 0.1  # below this, neo-Hookean log(J) continues linearly (finite for J <= 0)
 DRIVE_CHUNK = 256  # particles whose action gradients one thread adds up before its one atomic add
-NORM_FLOOR = 1e-30  # |dev eps|^2 below this is treated as this (only reached where the result is masked off)
 
 
 class _Constitutive:
@@ -53,48 +52,19 @@ class _Constitutive:
 
     @ti.func
     def _cofactor(self, F):
-        """d det(F) / dF, the cofactor matrix (defined for singular F too)."""
-        cof = ti.Matrix.zero(float, 3, 3)
-        for i, j in ti.static(ti.ndrange(3, 3)):
-            cof[i, j] = (F[(i + 1) % 3, (j + 1) % 3] * F[(i + 2) % 3, (j + 2) % 3]
-                         - F[(i + 1) % 3, (j + 2) % 3] * F[(i + 2) % 3, (j + 1) % 3])
-        return cof
+        """d det(F) / dF (`materials.base.cofactor`)."""
+        return cofactor(F)
 
     @ti.func
     def _elastic_stress(self, model: ti.template(), F, mu, la):
-        """Kirchhoff stress tau = P F^T of one elastic model."""
-        I = ti.Matrix.identity(float, 3)
-        J = F.determinant()
-        tau = ti.Matrix.zero(float, 3, 3)
-        if ti.static(model == MATERIALS["neo_hookean"].id):
-            # volumetric Kirchhoff stress J psi'(J) with psi = lambda log(J)^2 / 2; below J_MIN psi
-            # continues as its quadratic Taylor polynomial, so J psi'(J) turns tensile for J < 0 and
-            # an inverted element is pulled back through J = 0 instead of pushed further
-            dpsi, _ = self._volumetric(J)
-            tau = mu * (F @ F.transpose() - I) + la * J * dpsi * I
-        elif ti.static(model == MATERIALS["corotated"].id):
-            R, _ = ti.polar_decompose(F)
-            tau = 2.0 * mu * (F - R) @ F.transpose() + la * (J - 1.0) * J * I
-        elif ti.static(model == MATERIALS["stvk"].id):
-            G = 0.5 * (F.transpose() @ F - I)
-            tau = F @ (2.0 * mu * G + la * G.trace() * I) @ F.transpose()
-        return tau
-
-    @ti.func
-    def _volumetric(self, J):
-        """Neo-Hookean's psi'(J) with psi = log(J)^2 / 2, continued below J_MIN by its quadratic Taylor
-        polynomial (see `_elastic_stress`), and the derivative of h(J) = J psi'(J) for the adjoint."""
-        slope = (1.0 - ti.log(J_MIN)) / J_MIN ** 2
-        dpsi = ti.log(ti.max(J, J_MIN)) / ti.max(J, J_MIN) + slope * ti.min(J - J_MIN, 0.0)
-        dh = ti.select(J > J_MIN, 1.0 / ti.max(J, J_MIN), ti.log(J_MIN) / J_MIN + slope * (2.0 * J - J_MIN))
-        return dpsi, dh
+        """Kirchhoff stress tau = P F^T of one elastic model (its module's `stress`)."""
+        return ti.static(material(model).stress)(F, mu, la)
 
     @ti.kernel
-    def _neo_hookean_adjoint(self, s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32, end: ti.i32):
-        """Reverse of `_constitutive_update` for neo-Hookean particles (the robots' default), written by
-        hand like the plastic one: tau = mu (F F^T - I) + lambda h(J) I (+ the muscle) at the trial
-        F = (I + dt C) F_s, with h(J) = J psi'(J) = log J above J_MIN and its quadratic continuation
-        below (`_elastic_stress`)."""
+    def _elastic_adjoint(self, model: ti.template(), s: ti.i32, so: ti.i32, t: ti.i32, start: ti.i32, end: ti.i32):
+        """Reverse of `_constitutive_update` for an elastic model whose module writes its stress's adjoint
+        by hand (`stress_adjoint`; neo-Hookean, the robots' default), at the trial F = (I + dt C) F_s,
+        the muscle's included."""
         for p in range(start, end):
             F = self._trial(p, s)
             tau_bar = self.tau.grad[p]
@@ -102,14 +72,8 @@ class _Constitutive:
             if ti.static(self.has_muscles):
                 F_bar += self._muscle_adjoint(p, F, t, tau_bar)
             mu, la = self._lame(p)
-            J = F.determinant()
-            dpsi, dh = self._volumetric(J)
-            trace_bar = tau_bar.trace()
-            F_bar += mu * (tau_bar + tau_bar.transpose()) @ F + la * dh * trace_bar * self._cofactor(F)
-            mu_bar = ((F @ F.transpose() - ti.Matrix.identity(float, 3)) * tau_bar).sum()
-            nu = self.nu[p]
-            self.E.grad[p] = self.E.grad[p] + mu_bar / (2.0 * (1.0 + nu)) + J * dpsi * trace_bar * nu / (
-                (1.0 + nu) * (1.0 - 2.0 * nu))
+            F_bar, self.E.grad[p] = ti.static(material(model).stress_adjoint)(F, mu, la, self.nu[p], tau_bar, F_bar,
+                                                                              self.E.grad[p])
             self._add_trial_grad(p, s, F_bar, ti.Matrix.zero(float, 3, 3))
 
     @ti.func
@@ -129,11 +93,11 @@ class _Constitutive:
         if `write_jp`). The eigenframe algebra around it has a hand-written adjoint
         (`_plastic_adjoint_front/back`); Taichi differentiates only this map (`_spectral_map`).
 
-        Works in principal Hencky strain eps = log(sigma). F changes only when the trial
-        state lies outside the model's elastic region (for snow: a stretch outside its
-        bounds), so a body loaded below yield springs back without permanent set. Written
-        without branches or reassigned locals (masks select the case): Taichi's reverse mode
-        turns locals assigned in branches into stacks.
+        Works in principal Hencky strain eps = log(sigma), projected by the model's `return_map`
+        (materials/sand.py, clay.py, snow.py, ...). F changes only when the trial state lies
+        outside the model's elastic region (for snow: a stretch outside its bounds), so a body
+        loaded below yield springs back without permanent set. Written without branches (masks
+        select the case): Taichi's reverse mode turns locals assigned in branches into stacks.
 
         The Hencky models map eps affinely per particle, eps_new = alpha eps + beta (alpha = 1
         inside the yield surface, |radius| / |dev eps| on it, 0 at the apex), so the stress
@@ -145,45 +109,18 @@ class _Constitutive:
         dev = eps - tr / 3.0
         n2 = dev.dot(dev)
         prm = self.params[p]
-        eps_new = eps
-        alpha = 1.0
-        if ti.static(model == ID["sand"]):
-            # Drucker-Prager (Klar et al. 2016): |dev tau| <= -alpha tr(tau) around the apex set by
-            # the cohesion; expansion beyond the apex loses all elastic strain (no tension).
-            tip = 3.0 * prm[1] / (3.0 * la + 2.0 * mu)  # tr(eps) at the apex
-            slope = prm[0] * (3.0 * la + 2.0 * mu) / (2.0 * mu)
-            apex = ti.cast(tr > tip, float)
-            cone = (1.0 - apex) * ti.cast(n2 > (slope * (tip - tr)) ** 2, float)
-            shrink = slope * (tip - tr) / ti.sqrt(ti.max(n2, NORM_FLOOR))
-            eps_new = eps + apex * (tip / 3.0 - eps) + cone * (tr / 3.0 + shrink * dev - eps)
-            alpha = 1.0 - apex + cone * (shrink - 1.0)
-        elif ti.static(model == ID["clay"] or model == ID["mud"]):
-            # von Mises: |dev tau| = 2 mu |dev eps| <= sqrt(2/3) yield stress
-            radius = ti.sqrt(2.0 / 3.0) * prm[0] / (2.0 * mu)
-            outside = ti.cast(n2 > radius * radius, float)
-            shrink = radius / ti.sqrt(ti.max(n2, radius * radius))
-            eps_new = eps + outside * (tr / 3.0 + shrink * dev - eps)
-            alpha = 1.0 + outside * (shrink - 1.0)
-        elif ti.static(model == ID["snow"]):
-            # Stomakhin et al. 2013: principal stretches clamped to [1 - theta_c, 1 + theta_s]
-            eps_new = ti.min(ti.max(eps, ti.log(1.0 - prm[0])), ti.log(1.0 + prm[1]))
+        eps_new, alpha = ti.static(material(model).return_map)(eps, tr, dev, n2, prm, mu, la)
         # exp(0) - 1 == 0 exactly (with zero slope): an unprojected F is stored unchanged, bit for bit
         scale = ti.exp(eps_new - eps)
         scale_slope = scale * (alpha - 1.0) / (2.0 * a)
         k = ti.Vector.zero(float, 3)
         k_slope = mu * alpha / a
-        if ti.static(model == ID["snow"]):
-            # neo-Hookean with both moduli hardened by exp(xi (1 - J_p)), bounded to keep the
-            # wave speed (and so the time step) and the gradients bounded; F_new F_new^T has
-            # the clamped eigenvalues exp(2 eps_new)
-            inside = ti.cast(eps == eps_new, float)
-            scale_slope = -(1.0 - inside) * scale / (2.0 * a)
+        if ti.static(material(model).plastic_volume):  # snow: J_p is state, and its own principal stress
+            inside, scale_slope = ti.static(material(model).projection_slope)(eps, eps_new, scale, a)
             jp = self.Jp[s, p] * ti.exp((eps - eps_new).sum())
             if ti.static(write_jp):
                 self.Jp[so, p] = jp
-            h = ti.min(ti.max(ti.exp(prm[2] * (1.0 - jp)), MIN_HARDENING), prm[3])
-            k = h * (mu * (ti.exp(2.0 * eps_new) - 1.0) + la * eps_new.sum())
-            k_slope = h * mu * inside
+            k, k_slope = ti.static(material(model).principal_stress)(eps_new, inside, jp, prm, mu, la)
         else:  # Hencky: tau = 2 mu eps + lambda tr(eps) I, in the principal frame
             k = 2.0 * mu * eps_new + la * eps_new.sum()
         return scale - 1.0, scale_slope, k, k_slope
@@ -243,8 +180,8 @@ class _Constitutive:
                                [0.0, 0.0, a_bar[2] * ti.cast(A[2, 2] > J_MIN * J_MIN, float)]])
             F_bar = self.F_bar_part[p] + Q0 @ ((A_bar + A_bar.transpose()) @ P)
             C_bar = ti.Matrix.zero(float, 3, 3)
-            if ti.static(model == ID["mud"]):
-                tau_bar, eta = self.tau.grad[p], self.params[p][1]
+            if ti.static(material(model).viscous):  # mud
+                tau_bar, eta = self.tau.grad[p], self.params[p][ti.static(material(model).viscosity_index)]
                 F_bar += eta * ((C + C.transpose()) * tau_bar).sum() * self._cofactor(F)
                 C_bar += F.determinant() * eta * (tau_bar + tau_bar.transpose())
             self._add_trial_grad(p, s, F_bar, C_bar)
@@ -257,19 +194,15 @@ class _Constitutive:
         mu, la = self._lame(p)
         F_new = F
         tau = ti.Matrix.zero(float, 3, 3)
-        if ti.static(not MATERIALS[MODEL_NAMES[model]].plastic):
+        if ti.static(material(model).kind == "elastic"):
             tau = self._elastic_stress(model, F, mu, la)
-        elif ti.static(model == ID["water"]):
-            # weakly compressible: Cauchy pressure K (1 - J); only J is state, so F is reset to
-            # the isotropic J^(1/3) I (shear would otherwise accumulate without any stress)
-            J = F.determinant()
-            tau = self.params[p][0] * J * (J - 1.0) * ti.Matrix.identity(float, 3)
-            F_new = ti.exp(ti.log(ti.max(J, J_MIN)) / 3.0) * ti.Matrix.identity(float, 3)
+        elif ti.static(material(model).kind == "fluid"):  # water: the model resets F itself
+            F_new, tau = ti.static(material(model).update)(F, self.params[p])
         else:
             F_new, tau = self._plastic(model, p, s, so, F, mu, la)
-        if ti.static(model == ID["water"] or model == ID["mud"]):
+        if ti.static(material(model).viscous):  # water, mud
             # Newtonian viscosity, tau = J eta (grad v + grad v^T), with the APIC C as grad v
-            tau += F.determinant() * self.params[p][1] * (C + C.transpose())
+            tau += F.determinant() * self.params[p][ti.static(material(model).viscosity_index)] * (C + C.transpose())
         return F_new, tau
 
     @ti.func
@@ -292,7 +225,7 @@ class _Constitutive:
         (constitutive at the trial F, plus the muscle at action row t); forward only. State a
         plastic model writes (snow's J_p) goes to the `scratch` slot."""
         for p in range(start, end):
-            if ti.static(MATERIALS[MODEL_NAMES[model]].plastic and model != ID["water"]):
+            if ti.static(material(model).kind == "hencky"):
                 self.frame[p] = self._frame(s, p)
             F, tau = self._constitutive(model, p, s, scratch)
             if ti.static(self.has_muscles):
@@ -333,40 +266,26 @@ class _Constitutive:
 
     @ti.func
     def _muscle_stress(self, p, F, t):
-        """Kirchhoff stress of particle p's muscle at action row t (materials.MUSCLE_MODELS)."""
+        """Kirchhoff stress of particle p's muscle at action row t (materials/muscle.py)."""
         Ff = F @ self.fiber[p]
         row = t
         if ti.static(self.batched):  # forward only: one action row per member
             row = self.member[p]
         a = self.act[row].dot(self.muscle[p])
         s = self.muscle_ratio[p] * self.E[p]
-        tau = s * a * Ff.outer_product(Ff)
-        if ti.static(self.muscle_model == "energy"):
-            tau = 4.0 * s * (Ff.dot(Ff) - 1.0 + a) * Ff.outer_product(Ff)
-        return tau
+        return ti.static(muscle.STRESS[self.muscle_model])(Ff, a, s)
 
     @ti.func
     def _muscle_adjoint(self, p, F, t, tau_bar):
         """Adjoint of `_muscle_stress` (action row t): adds the gradients of the fibre, the muscle
-        membership, E and the action row, and returns F's. With u = F f, a the activation, s the
-        stiffness and T the stress's gradient: active (s a u u^T) gives u: s a (T + T^T) u, a: s u.T u,
-        s: a u.T u; energy (4 s c u u^T, c = |u|^2 - 1 + a) gives u: 4 s (c (T + T^T) u + 2 (u.T u) u),
-        a: 4 s u.T u, s: 4 c u.T u."""
+        membership, E and the action row, and returns F's; u = F f's, the activation's and the
+        stiffness's come from the muscle model's adjoint (materials/muscle.py)."""
         f = self.fiber[p]
         u = F @ f
         act = self.act[t]
         a = act.dot(self.muscle[p])
         s = self.muscle_ratio[p] * self.E[p]
-        q = u.dot(tau_bar @ u)
-        sym_u = (tau_bar + tau_bar.transpose()) @ u
-        u_bar = s * a * sym_u
-        a_bar = s * q
-        s_bar = a * q
-        if ti.static(self.muscle_model == "energy"):
-            c = u.dot(u) - 1.0 + a
-            u_bar = 4.0 * s * (c * sym_u + 2.0 * q * u)
-            a_bar = 4.0 * s * q
-            s_bar = 4.0 * c * q
+        u_bar, a_bar, s_bar = ti.static(muscle.ADJOINT[self.muscle_model])(u, a, s, tau_bar)
         if s != 0.0:  # particles without muscle contribute nothing
             self.fiber.grad[p] = self.fiber.grad[p] + F.transpose() @ u_bar
             self.muscle.grad[p] = self.muscle.grad[p] + a_bar * act
@@ -409,7 +328,7 @@ class _Constitutive:
         (their stresses are capped by their yield surfaces, hardening and bulk modulus)."""
         speed = self.wave0[p]
         model = self.material[p]
-        if model <= ti.static(ID["stvk"]):  # the elastic models
+        if model <= ti.static(ID["stvk"]):  # the built-in elastic models (a plugin's keeps wave0)
             b = F @ F.transpose()
             mean = b.trace() / 3.0
             dev = b - mean * ti.Matrix.identity(float, 3)

@@ -26,16 +26,14 @@ import taichi as ti
 
 from codesign_mpm import runtime
 from codesign_mpm.checkpoints import CheckpointStore
-from codesign_mpm.engine.constitutive import MODEL_NAMES
 from codesign_mpm.engine.storage import CAPACITY_STEP, Layout, _acquire, _recycle_program, _release
-from codesign_mpm.engine.transfer import FLIP_MODELS
-from codesign_mpm.materials import (ID, MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio,
-                                    model_wave_speed, muscle_modulus, viscosity)
+from codesign_mpm.engine.transfer import flip_models
+from codesign_mpm.materials import (MAX_ACTIVE_STRESS_RATIO, MODEL_NAMES, active_stress_ratio, material,
+                                    max_stiffness_ratio, model_wave_speed, muscle_modulus, viscosity)
 from codesign_mpm.sampling import Particles
 from codesign_mpm.scene import Scene, SceneError, validate_scene
 from codesign_mpm.terrain import height_map, normals
 
-HENCKY_PLASTIC = (ID["sand"], ID["snow"], ID["clay"], ID["mud"])  # models with a return mapping in log strain
 ADAPTIVE_CFL_FACTOR = 2.0
 """A frame takes more substeps than at rest once its state's CFL number (particle speed plus the
 stretch-stiffened wave speed, `_wave_speed`) would exceed this many times scene.cfl: a guard against
@@ -194,9 +192,11 @@ class Simulator:
                  max_frames: int = 1, checkpoint_every: int | None = None, capacity: int | None = None) -> None:
         validate_scene(scene)
         _recycle_program()
-        if requires_grad and ID["corotated"] in set(particles.material.tolist()):
-            raise SceneError("material kind 'corotated' is invalid in a differentiable simulator (requires_grad): "
-                             "its polar decomposition has no reverse mode in Taichi; use neo_hookean (the "
+        forward_only = [MODEL_NAMES[m] for m in sorted(set(particles.material.tolist())) if not material(m).differentiable]
+        if requires_grad and forward_only:
+            raise SceneError(f"material kind '{forward_only[0]}' is invalid in a differentiable simulator (requires_grad): "
+                             "the model has no reverse mode (corotated: Taichi has none of its polar decomposition); "
+                             "use neo_hookean (the "
                              "robots' default) or stvk, or simulate it without gradients")
         runtime.init_taichi(scene.arch, scene.dtype)
         self.scene = scene
@@ -222,7 +222,7 @@ class Simulator:
             boundary_cells=scene.boundary_cells,
             requires_grad=requires_grad,
             scatter_copies=runtime.scatter_copies(),
-            has_flip=scene.flip > 0 and any(m in FLIP_MODELS for m in models),
+            has_flip=scene.flip > 0 and any(m in flip_models() for m in models),
         ))
         self.k = _acquire(self.layout)
         self._generation = runtime.generation
@@ -449,7 +449,7 @@ class Simulator:
     def _stress_update(self, s: int, so: int, t: int, j: int = 0) -> None:
         """The stress (muscle included) of substep s, and the plastic models' return-mapped F in slot so."""
         for model, start, end in self._runs:
-            if model in HENCKY_PLASTIC:
+            if material(model).kind == "hencky":
                 self.k._eigen_frames(s, start, end)
             self.k._constitutive_update(model, s, so, t, start, end, j)
 
@@ -470,12 +470,12 @@ class Simulator:
         self.k._grid_op.grad()
         self.k._p2g_adjoint(s, self.n)
         for model, start, end in self._runs:
-            if model in HENCKY_PLASTIC:  # the eigenframe algebra by hand, the model's map by Taichi
+            if material(model).kind == "hencky":  # the eigenframe algebra by hand, the model's map by Taichi
                 self.k._plastic_adjoint_front(model, s, s + 1, t, start, end)
                 self.k._spectral_map.grad(model, s, s + 1, start, end)
                 self.k._plastic_adjoint_back(model, s, start, end)
-            elif model == ID["neo_hookean"]:
-                self.k._neo_hookean_adjoint(s, s + 1, t, start, end)
+            elif material(model).stress_adjoint is not None:  # written by hand (neo-Hookean)
+                self.k._elastic_adjoint(model, s, s + 1, t, start, end)
             else:
                 self.k._constitutive_update.grad(model, s, s + 1, t, start, end, 0)
                 continue
@@ -586,7 +586,8 @@ class Simulator:
             return np.ones(self.n)
         out = np.empty(self.n, self.np_real)
         self.k._save_jp(self._slot if slot is None else slot, self.n, out)
-        out[self.particles.material != ID["snow"]] = 1.0  # only snow particles keep J_p up to date
+        tracked = [m for m in self.layout.models if material(m).plastic_volume]
+        out[~np.isin(self.particles.material, tracked)] = 1.0  # only snow particles keep J_p up to date
         return out
 
     def _state(self, slot: int) -> tuple[np.ndarray, ...]:

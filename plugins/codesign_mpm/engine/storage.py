@@ -23,11 +23,11 @@ import taichi as ti
 from taichi.lang import impl
 
 from codesign_mpm import runtime
-from codesign_mpm.engine.constitutive import MODEL_NAMES, _Constitutive
+from codesign_mpm.engine.constitutive import _Constitutive
 from codesign_mpm.engine.eigen import JACOBI_TOL_ULPS, _Eigen
 from codesign_mpm.engine.grid import _Grid
 from codesign_mpm.engine.transfer import _Transfers
-from codesign_mpm.materials import ID, MATERIALS, N_PARAMS
+from codesign_mpm.materials import N_PARAMS, material
 
 CAPACITY_STEP = 1024  # particle storage is allocated in these steps so similar scenes share kernels
 MAX_FREE_STORAGES = 4  # compiled storages kept for reuse after their simulators close; older ones are freed
@@ -69,12 +69,12 @@ class _Storage(_Transfers, _Grid, _Eigen, _Constitutive):
         self.layout = layout
         self.grid_shape = layout.grid_shape
         self.models = layout.models
-        self.has_params = any(MATERIALS[MODEL_NAMES[m]].plastic for m in layout.models)
+        self.has_params = any(material(m).plastic for m in layout.models)
         # the stress in kernels of its own ahead of p2g: plastic models (one small kernel per model
         # compiles far faster than all of them fused into the scatter) and every differentiable
         # layout (p2g's adjoint is then the scatter's alone, differentiated plane by plane)
         self.separate_stress = self.has_params or layout.requires_grad
-        self.has_jp = ID["snow"] in layout.models  # snow's plastic volume ratio is part of the state
+        self.has_jp = any(material(m).plastic_volume for m in layout.models)  # snow's J_p is part of the state
         self.jacobi_tol = JACOBI_TOL_ULPS * float(np.finfo(np.float64 if impl.current_cfg().default_fp == ti.f64
                                                            else np.float32).eps)
         self.has_muscles = layout.has_muscles

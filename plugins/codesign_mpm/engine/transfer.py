@@ -36,7 +36,10 @@ import taichi as ti
 
 from codesign_mpm.materials import MATERIALS
 
-FLIP_MODELS = tuple(m.id for m in MATERIALS.values() if not m.plastic)  # the elastic bodies: scene.flip applies to them
+
+def flip_models() -> tuple[int, ...]:
+    """The elastic models, whose bodies scene.flip applies to (plugins' included)."""
+    return tuple(m.id for m in MATERIALS.values() if not m.plastic)
 
 
 class _Transfers:
@@ -254,7 +257,7 @@ class _Transfers:
         """scene.flip for the elastic bodies, 0 (APIC alone) for the covers: with FLIP, a water column's
         mean pressure gradient fell 10% below rho g (docs/contact.md section 10)."""
         share = 0.0
-        for model in ti.static(FLIP_MODELS):
+        for model in ti.static(flip_models()):
             if self.material[p] == model:
                 share = self.flip_ratio[None]
         return share
