@@ -36,8 +36,14 @@ def plugin_dir(tmp_path_factory) -> Path:
 
 def codesign(site: Path, *args: str, **env: str) -> subprocess.CompletedProcess:
     clean = {k: v for k, v in os.environ.items() if not k.startswith("CODESIGN_")}
-    clean.update(PYTHONPATH=os.pathsep.join([str(site), str(HERE)]), **{plugins.EXPLICIT_ENV: "toy_plugin"}, **env)
+    clean.update(PYTHONPATH=os.pathsep.join([str(site), str(HERE), *_python_path()]),
+                 **{plugins.EXPLICIT_ENV: "toy_plugin"}, **env)
     return subprocess.run([sys.executable, "-m", "codesign", *args], capture_output=True, text=True, env=clean)
+
+
+def _python_path() -> list[str]:
+    """This process's own PYTHONPATH (a checkout run without installing it), after the plugin's folder."""
+    return [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
 
 
 def listed(result: subprocess.CompletedProcess) -> dict[str, dict]:
@@ -73,3 +79,27 @@ def test_plugin_can_be_disabled_by_option_or_by_turning_off_autoload(plugin_dir)
 def test_plugin_is_not_visible_outside_its_virtualenv():
     assert "square_wave" not in [e.name for e in plugins.get_registry().entries("controller")]
 
+
+
+def test_the_plugins_material_is_listed_with_the_engines_own(plugin_dir):
+    rows = listed(codesign(plugin_dir, "plugins", "--json"))
+    assert rows["mooney_rivlin"]["kind"] == "material"
+    assert rows["mooney_rivlin"]["distribution"] == "codesign-example-plugin"
+    assert rows["sand"]["kind"] == "material" and rows["sand"]["distribution"] == "codesign"
+
+
+@pytest.mark.slow
+def test_the_plugins_material_runs_in_a_scene_and_its_gradients_match_finite_differences(plugin_dir):
+    """tests/example_material_check.py in a process that sees the plugin: forward in float32, then every
+    kind of input's gradient (actions, Young's modulus, x0, v0) against central differences in float64."""
+    env = {k: v for k, v in os.environ.items() if k != plugins.EXPLICIT_ENV}  # keep CODESIGN_TAICHI_CACHE
+    env["PYTHONPATH"] = os.pathsep.join([str(plugin_dir), *_python_path()])
+    result = subprocess.run([sys.executable, str(HERE / "example_material_check.py")], capture_output=True,
+                            text=True, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    assert report["id"] >= 8 and report["kind"] == "elastic"  # after the engine's own models
+    forward = report["forward"]
+    assert forward["finite"] and forward["moved"] > 0.01 and 0.5 < forward["min_J"] < 1.0 < forward["max_J"] < 1.5
+    for row in report["gradients"]:
+        assert row["analytic"] == pytest.approx(row["numeric"], rel=1e-4, abs=1e-4 * row["scale"]), row

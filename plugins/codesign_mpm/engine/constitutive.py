@@ -194,7 +194,9 @@ class _Constitutive:
         mu, la = self._lame(p)
         F_new = F
         tau = ti.Matrix.zero(float, 3, 3)
-        if ti.static(material(model).kind == "elastic"):
+        if ti.static(material(model).elastic_with_parameters):  # a plugin's: its stress reads them too
+            tau = ti.static(material(model).stress)(F, mu, la, self.params[p])
+        elif ti.static(material(model).kind == "elastic"):
             tau = self._elastic_stress(model, F, mu, la)
         elif ti.static(material(model).kind == "fluid"):  # water: the model resets F itself
             F_new, tau = ti.static(material(model).update)(F, self.params[p])

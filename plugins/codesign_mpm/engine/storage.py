@@ -69,7 +69,8 @@ class _Storage(_Transfers, _Grid, _Eigen, _Constitutive):
         self.layout = layout
         self.grid_shape = layout.grid_shape
         self.models = layout.models
-        self.has_params = any(material(m).plastic for m in layout.models)
+        # per-particle parameter vectors: the non-elastic models', and a plugin's elastic model with parameters
+        self.has_params = any(material(m).plastic or material(m).parameters for m in layout.models)
         # the stress in kernels of its own ahead of p2g: plastic models (one small kernel per model
         # compiles far faster than all of them fused into the scatter) and every differentiable
         # layout (p2g's adjoint is then the scatter's alone, differentiated plane by plane)

@@ -119,7 +119,8 @@ class MaterialModel:
     """Where the dynamic viscosity eta sits in the parameter vector: the engine adds the Newtonian
     stress J eta (C + C^T) (APIC's C as the velocity gradient) and the explicit diffusion limit."""
     stress: Callable | None = None
-    """elastic (Taichi): (F, mu, la) -> Kirchhoff stress tau = P F^T."""
+    """elastic (Taichi): (F, mu, la) -> Kirchhoff stress tau = P F^T; (F, mu, la, prm) for a model
+    with `parameters`."""
     stress_adjoint: Callable | None = None
     """elastic, optional (Taichi): (F, mu, la, nu, tau_bar, E_bar) -> (F_bar, E_bar): the stress's
     adjoint written by hand (E_bar: Young's modulus's gradient so far, returned with this stress's
@@ -149,6 +150,11 @@ class MaterialModel:
         needed = {"elastic": "stress", "hencky": "return_map", "fluid": "update"}[self.kind]
         if getattr(self, needed) is None:
             raise ValueError(f"material '{self.name}' of kind {self.kind} needs its `{needed}` function")
+
+    @property
+    def elastic_with_parameters(self) -> bool:
+        """An elastic model whose stress reads a parameter vector (`stress(F, mu, la, prm)`)."""
+        return self.kind == "elastic" and bool(self.parameters)
 
     @property
     def viscous(self) -> bool:
