@@ -78,7 +78,7 @@ def make_task(config: TaskConfig) -> Task:
 def cover_body(cover: CoverConfig) -> BodySpec:
     """The ground-cover layer of an environment as a scene body."""
     material = MaterialSpec(**{name: getattr(cover, name) for name in MaterialSpec.__dataclass_fields__
-                               if name != "kind"}, kind=cover.kind)
+                               if name != "kind" and hasattr(cover, name)}, kind=cover.kind)
     return BodySpec(name=f"cover ({cover.kind})", shape=ShapeSpec(kind="layer", thickness=cover.thickness),
                     material=material, particles_per_cell=cover.particles_per_cell)
 
