@@ -80,7 +80,8 @@ def gradients() -> list[dict]:
 
 
 if __name__ == "__main__":
-    result = {"id": ID["mooney_rivlin"], "kind": MATERIALS["mooney_rivlin"].kind, "forward": forward(),
+    moved = forward()  # its first scene loads the plugins' models (ids after the engine's own)
+    result = {"id": ID["mooney_rivlin"], "kind": MATERIALS["mooney_rivlin"].kind, "forward": moved,
               "gradients": gradients()}
     print(json.dumps(result))
     sys.exit(0)

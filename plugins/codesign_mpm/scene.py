@@ -194,7 +194,8 @@ def validate_scene(scene: Scene) -> None:
         _fail("terrain.slope_deg", t.slope_deg, "must be in [-60, 60] degrees")
     if not scene.bodies:
         _fail("bodies", [], "a scene needs at least one body")
-    materials.load_plugin_materials()  # scenes may name the models of plugins
+    if any(body.material.kind not in MATERIALS for body in scene.bodies):
+        materials.load_plugin_materials()  # a plugin's model: the registry is asked only for those
     robots = [b.name for b in scene.bodies if b.robot]
     if len(robots) > 1:
         _fail("bodies", robots, "at most one body may be the robot")

@@ -16,11 +16,7 @@ Where things live (docs/engine.md has the longer tour):
 
 Importing this package imports Taichi; `codesign_mpm` itself loads it on first use of `Simulator`.
 """
-from codesign_mpm import materials
-
-materials.load_plugin_materials()  # plugins' models get their ids before any kernel is compiled
-
-from codesign_mpm.engine.constitutive import J_MIN, MODEL_NAMES  # noqa: E402
+from codesign_mpm.engine.constitutive import J_MIN, MODEL_NAMES
 from codesign_mpm.engine.eigen import JACOBI_EPS, JACOBI_SWEEPS, JACOBI_TOL_ULPS
 from codesign_mpm.engine.grid import MASS_EPS
 from codesign_mpm.engine.simulator import (ADAPTIVE_CFL_FACTOR, CHECKPOINT_MEMORY_BYTES, GRID_STORE_BYTES,

@@ -68,7 +68,8 @@ _loaded_from: Any = None
 
 def load_plugin_materials() -> None:
     """Add the models that plugins register (`codesign_register_materials`), in name order; the
-    registry is asked again only when it was rebuilt."""
+    registry is asked again only when it was rebuilt. Called when a scene names a model the table
+    lacks (`validate_scene`, `build_particles`): scenes of the engine's own models never load plugins."""
     global _loaded_from
     from codesign.plugins import get_registry
 
