@@ -256,15 +256,17 @@ def gait(frame: int, k: int, amplitude: float = 0.3, hz: float = 4.0) -> np.ndar
 
 
 def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[float] = None, arch: str = "cpu",
-              flip: float = 0.0):
+              flip: Optional[float] = None):
     """The registered environment at setting `s`; terrain at 0.13 (above the wall band down to dx 1/24)
-    with the preset's friction unless `friction` is given; `flip`: the robot's FLIP share."""
-    from codesign_mpm.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
+    with the preset's friction unless `friction` is given; `flip`: the robot's FLIP share (None: the
+    environment's default)."""
+    from codesign_mpm.config import FLIP_DEFAULT, PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
     from codesign_mpm.env import LocomotionEnv
 
     preset = PRESETS[environment]
     config = PRESET_CONFIGS[environment](
-        dx=s.dx, cfl=s.cfl, dtype=s.dtype, horizon=horizon, checkpoint_every=s.checkpoint_every, arch=arch, flip=flip,
+        dx=s.dx, cfl=s.cfl, dtype=s.dtype, horizon=horizon, checkpoint_every=s.checkpoint_every, arch=arch,
+        flip=FLIP_DEFAULT if flip is None else flip,
         terrain=TerrainConfig(height=0.13, friction=preset.friction if friction is None else friction),
         robot=RobotConfig(youngs_modulus=preset.robot_youngs_modulus, particles_per_cell=s.particles_per_cell,
                           position=[0.35, 0.25]))
