@@ -425,10 +425,11 @@ PROBLEMS: dict[str, Problem] = {
     "robot_ground": Problem(
         "robot_ground", "Robot on ground: distance in 1 s (quick size: 0.25 s)", "distance travelled along x",
         "converged: the finest setting (a fixed sine gait, environment `ground`)", measure_robot("ground"), {},
-        notes="A travelling gait (about 0.1 body lengths per second). Locomotion through frictional contact "
-              "converges slowly with dx: the paper preset (dx 1/96) comes within 10% of the reference, coarser "
-              "grids are 30 to 60% off, so compare designs and controllers at one setting and confirm a finding "
-              "at paper quality. What causes it, measured: docs/contact.md."),
+        notes="A travelling gait (about 0.1 body lengths per second), with the FLIP share every recipe runs "
+              "with (0.99). The error falls with dx; the paper preset (dx 1/96) comes within 10% of the "
+              "reference, dx 1/32 to 1/64 are a third to a half off: where the terrain's surface falls between "
+              "node layers decides how much of the body grips (docs/contact.md sections 10 and 12), so compare "
+              "designs and controllers at one setting and confirm a number at paper quality."),
     "robot_desert": Problem(
         "robot_desert", "Robot in the desert (sand cover): distance in 1 s (quick size: 0.25 s)",
         "distance travelled along x",
