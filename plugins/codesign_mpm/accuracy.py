@@ -256,15 +256,17 @@ def gait(frame: int, k: int, amplitude: float = 0.3, hz: float = 4.0) -> np.ndar
 
 
 def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[float] = None, arch: str = "cpu",
-              flip: float = 0.0):
+              flip: Optional[float] = None):
     """The registered environment at setting `s`; terrain at 0.13 (above the wall band down to dx 1/24)
-    with the preset's friction unless `friction` is given; `flip`: the robot's FLIP share."""
-    from codesign_mpm.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
+    with the preset's friction unless `friction` is given; `flip`: the robot's FLIP share (None: the
+    environment's default)."""
+    from codesign_mpm.config import FLIP_DEFAULT, PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
     from codesign_mpm.env import LocomotionEnv
 
     preset = PRESETS[environment]
     config = PRESET_CONFIGS[environment](
-        dx=s.dx, cfl=s.cfl, dtype=s.dtype, horizon=horizon, checkpoint_every=s.checkpoint_every, arch=arch, flip=flip,
+        dx=s.dx, cfl=s.cfl, dtype=s.dtype, horizon=horizon, checkpoint_every=s.checkpoint_every, arch=arch,
+        flip=FLIP_DEFAULT if flip is None else flip,
         terrain=TerrainConfig(height=0.13, friction=preset.friction if friction is None else friction),
         robot=RobotConfig(youngs_modulus=preset.robot_youngs_modulus, particles_per_cell=s.particles_per_cell,
                           position=[0.35, 0.25]))
@@ -423,10 +425,11 @@ PROBLEMS: dict[str, Problem] = {
     "robot_ground": Problem(
         "robot_ground", "Robot on ground: distance in 1 s (quick size: 0.25 s)", "distance travelled along x",
         "converged: the finest setting (a fixed sine gait, environment `ground`)", measure_robot("ground"), {},
-        notes="A travelling gait (about 0.1 body lengths per second). Locomotion through frictional contact "
-              "converges slowly with dx: the paper preset (dx 1/96) comes within 10% of the reference, coarser "
-              "grids are 30 to 60% off, so compare designs and controllers at one setting and confirm a finding "
-              "at paper quality. What causes it, measured: docs/contact.md."),
+        notes="A travelling gait (about 0.1 body lengths per second), with the FLIP share every recipe runs "
+              "with (0.99). The error falls with dx; the paper preset (dx 1/96) comes within 10% of the "
+              "reference, dx 1/32 to 1/64 are a third to a half off: where the terrain's surface falls between "
+              "node layers decides how much of the body grips (docs/contact.md sections 10 and 12), so compare "
+              "designs and controllers at one setting and confirm a number at paper quality."),
     "robot_desert": Problem(
         "robot_desert", "Robot in the desert (sand cover): distance in 1 s (quick size: 0.25 s)",
         "distance travelled along x",

@@ -32,12 +32,13 @@ QUALITY: dict[str, Quality] = {
     "draft": Quality(dx=1 / 32, particles_per_cell=8, cfl=0.4, dtype="float32",
                      purpose="smoke tests, recipe debugging, quick sweeps: on both robots' fronts, where dx 1/24 "
                              "more than doubles the desert's error; cfl 0.8 blows up far earlier in "
-                             "docs/stability.md. A gait's distance can be off by a factor of a few: not for "
-                             "rankings (Spearman 0.67 against paper over 8 random gaits, docs/contact.md)"),
+                             "docs/stability.md. A gait's distance can be off by half: not for rankings (Spearman "
+                             "0.29 against paper over 8 random gaits, docs/contact.md)"),
     "default": Quality(dx=1 / 48, particles_per_cell=8, cfl=0.4, dtype="float32",
                        purpose="the settings every recipe had before presets (kept so that results do not move); "
-                               "day-to-day optimisation at one fixed setting. Ranks gaits roughly as paper does "
-                               "(Spearman 0.71 over 8 random gaits): confirm a ranking at paper"),
+                               "day-to-day optimisation at one fixed setting. Ranks gaits as paper does (Spearman "
+                               "0.93 over 8 random gaits), though a gait's distance is about a third off: "
+                               "confirm a number at paper"),
     "paper": Quality(dx=1 / 96, particles_per_cell=8, cfl=0.4, dtype="float32",
                      purpose="figures and final numbers: the first setting on the ground robot's front whose "
                              "distance is within 10% of the reference"),

@@ -124,7 +124,9 @@ class Scene:
     bodies: List[BodySpec] = field(default_factory=list)
     frame_dt: float = 8e-3  # one control step; actions are held over its substeps
     cfl: float = 0.4  # dt <= cfl * dx / (wave speed + speed)
-    flip: float = 0.0  # FLIP's share in the elastic bodies' velocity update (0: APIC alone; opt-in, docs/contact.md section 10)
+    # FLIP's share in the elastic bodies' velocity update; 0, APIC alone, conserves angular momentum
+    # exactly. The locomotion environment's default is config.FLIP_DEFAULT (docs/contact.md section 10)
+    flip: float = 0.0
     dt: Optional[float] = None  # force a (smaller) substep
     allow_unstable_dt: bool = False  # accept a dt above the CFL bound (you were warned)
     adaptive_dt: bool = True  # each frame takes as many substeps as its state needs (speeds, stretch); never fewer than at rest
@@ -176,7 +178,7 @@ def validate_scene(scene: Scene) -> None:
     if not 0 < scene.cfl <= 1:
         _fail("cfl", scene.cfl, "must be in (0, 1]; 0.3 to 0.5 is typical")
     if not 0 <= scene.flip < 1:
-        _fail("flip", scene.flip, "must be in [0, 1): 0 is APIC alone (the default), 0.99 converges in time")
+        _fail("flip", scene.flip, "must be in [0, 1): 0 is APIC alone, 0.99 converges in time")
     if scene.dt is not None and not scene.dt > 0:
         _fail("dt", scene.dt, "must be > 0 (or null to derive it from the CFL condition)")
     for key, value, allowed in (("dtype", scene.dtype, DTYPES), ("arch", scene.arch, ARCHS),

@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -75,9 +75,10 @@ def bang_bang(k: int, amplitude: float = 0.3) -> Callable[[int], np.ndarray]:
 def _robot(s: Setting, **changes):
     """The shared robot simulator, its particles changed as the case says."""
     from codesign_mpm import build_particles
+    from codesign_mpm.config import FLIP_DEFAULT
     from codesign_mpm.engine import Simulator
 
-    scene = gradient_scene(s)
+    scene = replace(gradient_scene(s), flip=FLIP_DEFAULT)  # the FLIP share a recipe's robot runs with
     sim = Simulator(scene, build_particles(scene), requires_grad=True, max_frames=GRAD_MAX_FRAMES,
                     checkpoint_every=GRAD_SEGMENT)  # allocated first: the layout of tests/mpm/test_engine_f64.py
     body = scene.bodies[0]
@@ -169,8 +170,20 @@ for _env in ("desert", "snow", "clay", "wetland", "shallow_water", "ocean"):
 
 
 # ------------------------------------------------------------------------------------- measuring
+def volumetric_energy(J: np.ndarray) -> np.ndarray:
+    """log(J)^2 / 2, and below the engine's J_MIN its quadratic Taylor continuation: the volumetric
+    energy (per lambda) whose derivative the engine's neo-Hookean stress uses (engine._volumetric)."""
+    from codesign_mpm.materials.neo_hookean import J_MIN
+
+    log_min, slope = np.log(J_MIN), (1.0 - np.log(J_MIN)) / J_MIN ** 2
+    d = J - J_MIN
+    return np.where(d > 0, 0.5 * np.log(np.maximum(J, J_MIN)) ** 2,
+                    0.5 * log_min ** 2 + log_min / J_MIN * d + 0.5 * slope * d ** 2)
+
+
 def energy(sim, x, v, F) -> tuple[float, float]:
-    """(kinetic + gravitational + neo-Hookean elastic energy, kinetic energy)."""
+    """(kinetic + gravitational + neo-Hookean elastic energy, kinetic energy), the elastic energy the
+    one the engine integrates (its volumetric part continued below J_MIN, `volumetric_energy`)."""
     from codesign_mpm.materials import ID, lame
 
     p = sim.particles
@@ -184,7 +197,7 @@ def energy(sim, x, v, F) -> tuple[float, float]:
     if ok.any():
         mu, la = lame(p.youngs_modulus[ok], p.poisson_ratio[ok])
         logJ = np.log(J[ok])
-        psi = 0.5 * mu * ((F[ok] ** 2).sum((1, 2)) - 3) - mu * logJ + 0.5 * la * logJ ** 2
+        psi = 0.5 * mu * ((F[ok] ** 2).sum((1, 2)) - 3) - mu * logJ + la * volumetric_energy(J[ok])
         total += float(p.volume[ok] @ psi)
     return total, kinetic
 

@@ -36,6 +36,10 @@ import taichi as ti
 
 from codesign_mpm.materials import MATERIALS
 
+# a particle compressed below this volume ratio takes APIC's velocity alone, whatever the FLIP share:
+# crushed bodies (a drop faster than the body's wave speed, J -> 0.01) otherwise gain energy
+# (docs/contact.md section 11); locomotion stays above J = 0.5
+J_FLIP = 0.5
 
 def flip_models() -> tuple[int, ...]:
     """The elastic models, whose bodies scene.flip applies to (plugins' included)."""
@@ -253,12 +257,14 @@ class _Transfers:
             self._p2g_adjoint_particle(p, s)
 
     @ti.func
-    def _flip_share(self, p):
-        """scene.flip for the elastic bodies, 0 (APIC alone) for the covers: with FLIP, a water column's
-        mean pressure gradient fell 10% below rho g (docs/contact.md section 10)."""
+    def _flip_share(self, p, s):
+        """scene.flip for the elastic bodies, 0 (APIC alone) for the covers (with FLIP, a water column's
+        mean pressure gradient fell 10% below rho g: docs/contact.md section 10) and for a particle
+        crushed below J_FLIP in slot s. The switch is piecewise constant, so the adjoint needs no term
+        for it."""
         share = 0.0
         for model in ti.static(flip_models()):
-            if self.material[p] == model:
+            if self.material[p] == model and self.F[s, p].determinant() > J_FLIP:
                 share = self.flip_ratio[None]
         return share
 
@@ -280,7 +286,7 @@ class _Transfers:
             if ti.static(self.has_flip):
                 old_v += weight * self.grid_v_old[node + offset]
         if ti.static(self.has_flip):
-            self.v[so, p] = new_v + self._flip_share(p) * (self.v[s, p] - old_v)
+            self.v[so, p] = new_v + self._flip_share(p, s) * (self.v[s, p] - old_v)
         else:
             self.v[so, p] = new_v
         self.C[so, p] = new_C
@@ -319,7 +325,7 @@ class _Transfers:
         h0 = self.v.grad[s + 1, p] + self._dt(p) * x_bar - B @ fx
         kept = ti.Vector.zero(float, 3)  # FLIP: the share of v' that is v_p - V_p^old
         if ti.static(self.has_flip):
-            kept = self._flip_share(p) * self.v.grad[s + 1, p]
+            kept = self._flip_share(p, s) * self.v.grad[s + 1, p]
         S0 = ti.Vector.zero(float, 3)
         fx_bar = ti.Vector.zero(float, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
