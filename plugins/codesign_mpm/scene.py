@@ -125,7 +125,7 @@ class Scene:
     frame_dt: float = 8e-3  # one control step; actions are held over its substeps
     cfl: float = 0.4  # dt <= cfl * dx / (wave speed + speed)
     # FLIP's share in the elastic bodies' velocity update; 0, APIC alone, conserves angular momentum
-    # exactly. The locomotion environment's default is config.FLIP_DEFAULT (docs/contact.md section 10)
+    # exactly. The locomotion environment's default is config.FLIP_DEFAULT (docs/contact.md sections 10-11)
     flip: float = 0.0
     dt: Optional[float] = None  # force a (smaller) substep
     allow_unstable_dt: bool = False  # accept a dt above the CFL bound (you were warned)
