@@ -172,7 +172,8 @@ for _env in ("desert", "snow", "clay", "wetland", "shallow_water", "ocean"):
 # ------------------------------------------------------------------------------------- measuring
 def volumetric_energy(J: np.ndarray) -> np.ndarray:
     """log(J)^2 / 2, and below the engine's J_MIN its quadratic Taylor continuation: the volumetric
-    energy (per lambda) whose derivative the engine's neo-Hookean stress uses (materials.neo_hookean.volumetric)."""
+    energy (per lambda) whose derivative the engine's neo-Hookean stress uses
+    (materials.neo_hookean.volumetric)."""
     from codesign_mpm.materials.neo_hookean import J_MIN
 
     log_min, slope = np.log(J_MIN), (1.0 - np.log(J_MIN)) / J_MIN ** 2
