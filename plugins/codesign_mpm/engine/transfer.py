@@ -2,18 +2,19 @@
 
     p2g -> scatter m v and the MLS force/affine term (the Kirchhoff stress from
            `constitutive`) to each particle's 27 nodes (quadratic B-splines, APIC)
-    g2p -> gather v and C; x <- x + dt v; with `scene.flip` > 0 (opt-in) an elastic body's
+    g2p -> gather v and C; x <- x + dt v; with `scene.flip` > 0 (0.99 in recipes) an elastic body's
            particle keeps that share of its own velocity plus the grid's change (FLIP)
 
-Why FLIP (opt-in): APIC hands each particle the grid's velocity, which keeps the particles' affine
+Why FLIP: APIC hands each particle the grid's velocity, which keeps the particles' affine
 motion and filters away the rest, at every substep: a damping whose rate is the number of
 substeps per second. A robot on terrain, whose velocity near a stuck contact is not affine
 within a cell, lost its progress as the step shrank (docs/contact.md sections 8-10). With the
 FLIP share, a particle keeps its own velocity and adds the grid's change over the substep,
 `v_p' = V_p + flip (v_p - V_p^old)` (V_p: the grid's new velocity at p, V_p^old: the grid's
 velocity before forces, both gathered with p's weights); positions move with the grid (V_p),
-as F does, so the deformation stays that of the grid's field. Not the default: a robot dropped
-onto the ground at 8 units/s gains energy with it (docs/contact.md section 10).
+as F does, so the deformation stays that of the grid's field. A particle crushed below `J_FLIP`
+takes APIC's velocity alone: there the kept velocities created energy (docs/contact.md section 11).
+A bare `Scene` defaults to flip 0; the locomotion environment to 0.99.
 
 Scatters without atomics: on a CPU a float atomic add is a compare-and-swap loop, and p2g's
 108 of them per particle bound the whole substep. There, each thread scatters its chunk of
@@ -40,6 +41,7 @@ from codesign_mpm.materials import MATERIALS
 # crushed bodies (a drop faster than the body's wave speed, J -> 0.01) otherwise gain energy
 # (docs/contact.md section 11); locomotion stays above J = 0.5
 J_FLIP = 0.5
+
 
 def flip_models() -> tuple[int, ...]:
     """The elastic models, whose bodies scene.flip applies to (plugins' included)."""
