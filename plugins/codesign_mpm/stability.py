@@ -170,22 +170,11 @@ for _env in ("desert", "snow", "clay", "wetland", "shallow_water", "ocean"):
 
 
 # ------------------------------------------------------------------------------------- measuring
-def volumetric_energy(J: np.ndarray) -> np.ndarray:
-    """log(J)^2 / 2, and below the engine's J_MIN its quadratic Taylor continuation: the volumetric
-    energy (per lambda) whose derivative the engine's neo-Hookean stress uses
-    (materials.neo_hookean.volumetric)."""
-    from codesign_mpm.materials.neo_hookean import J_MIN
-
-    log_min, slope = np.log(J_MIN), (1.0 - np.log(J_MIN)) / J_MIN ** 2
-    d = J - J_MIN
-    return np.where(d > 0, 0.5 * np.log(np.maximum(J, J_MIN)) ** 2,
-                    0.5 * log_min ** 2 + log_min / J_MIN * d + 0.5 * slope * d ** 2)
-
-
 def energy(sim, x, v, F) -> tuple[float, float]:
     """(kinetic + gravitational + neo-Hookean elastic energy, kinetic energy); the elastic energy is the
     one the engine integrates (its volumetric part continued below J_MIN, `volumetric_energy`)."""
     from codesign_mpm.materials import ID, lame
+    from codesign_mpm.materials.neo_hookean import volumetric_energy
 
     p = sim.particles
     m = p.volume * p.density

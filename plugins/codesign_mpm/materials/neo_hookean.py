@@ -4,6 +4,8 @@ tau = mu (F F^T - I) + lambda J psi'(J) I with psi = log(J)^2 / 2; below J_MIN p
 its quadratic Taylor polynomial, so J psi'(J) turns tensile for J < 0 and an inverted element
 is pulled back through J = 0 instead of pushed further. Its adjoint is written by hand (Taichi's
 reverse mode of the robots' most common kernel compiled far slower)."""
+import numpy as np
+
 from codesign_mpm.materials.base import MaterialModel, cofactor, func, ti
 
 J_MIN = 0.1  # below this, neo-Hookean log(J) continues linearly (finite for J <= 0)
@@ -17,6 +19,15 @@ def volumetric(J):
     dpsi = ti.log(ti.max(J, J_MIN)) / ti.max(J, J_MIN) + slope * ti.min(J - J_MIN, 0.0)
     dh = ti.select(J > J_MIN, 1.0 / ti.max(J, J_MIN), ti.log(J_MIN) / J_MIN + slope * (2.0 * J - J_MIN))
     return dpsi, dh
+
+
+def volumetric_energy(J: np.ndarray) -> np.ndarray:
+    """psi = log(J)^2 / 2 and below J_MIN its quadratic Taylor continuation (NumPy): the energy whose
+    derivative `volumetric` is, for audits of the energy the engine integrates."""
+    log_min, slope = np.log(J_MIN), (1.0 - np.log(J_MIN)) / J_MIN ** 2
+    d = J - J_MIN
+    return np.where(d > 0, 0.5 * np.log(np.maximum(J, J_MIN)) ** 2,
+                    0.5 * log_min ** 2 + log_min / J_MIN * d + 0.5 * slope * d ** 2)
 
 
 @func
