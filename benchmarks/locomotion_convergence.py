@@ -7,6 +7,7 @@ Prints JSON lines (and appends them to --out); docs/contact.md reads them.
     python benchmarks/locomotion_convergence.py ground --arch cuda --out records.jsonl
     python benchmarks/locomotion_convergence.py floating
     python benchmarks/locomotion_convergence.py ranking --gaits 5
+    python benchmarks/locomotion_convergence.py reference --environment desert --resolutions 64 96 128 --arch cuda
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from codesign_mpm import BodySpec, MaterialSpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec, build_particles
-from codesign_mpm.accuracy import Setting, gait, robot_env
+from codesign_mpm.accuracy import Setting, gait, measure_robot, robot_env
 from codesign_mpm.engine import Simulator
 
 FRAMES = 125  # 1 s of 8 ms control steps
@@ -75,9 +76,26 @@ def ranking(gaits: int, arch: str) -> list[dict]:
     return records
 
 
+def reference(environment: str, n: int, arch: str, seconds: float) -> dict:
+    """`codesign bench accuracy`'s robot problem at its reference setting (27 particles per cell,
+    CFL 0.2, float64) at dx 1/n: is the report's reference converged (do the two finest agree)?"""
+    from codesign_mpm import runtime
+
+    setting = Setting(dx=1 / n, particles_per_cell=27, cfl=0.2, dtype="float64")
+    runtime.init_taichi(arch, setting.dtype)
+    t0 = time.perf_counter()
+    record = measure_robot(environment, arch)(setting, dict(seconds=seconds))
+    return dict(environment=environment, distance=record["value"], particles=record["particles"],
+                substeps_per_frame=record["substeps_per_frame"], process_s=time.perf_counter() - t0)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("study", choices=["ground", "floating", "ranking"])
+    parser.add_argument("study", choices=["ground", "floating", "ranking", "reference"])
+    parser.add_argument("--environment", default="ground", choices=["ground", "desert"],
+                        help="reference: which robot problem")
+    parser.add_argument("--resolutions", type=int, nargs="+", default=list(RESOLUTIONS), help="1 / dx")
+    parser.add_argument("--seconds", type=float, default=1.0, help="reference: simulated time")
     parser.add_argument("--gaits", type=int, default=5, help="ranking: random gaits to rank")
     parser.add_argument("--arch", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--frictions", type=float, nargs="+", default=[0.0, 0.5, 5.0])
@@ -95,10 +113,14 @@ def main() -> None:
         for record in ranking(args.gaits, args.arch):
             emit(record)
         return
+    if args.study == "reference":
+        for n in args.resolutions:
+            emit(dict(dx=f"1/{n}", **reference(args.environment, n, args.arch, args.seconds)))
+        return
     runs = ([dict(friction=mu, cfl=cfl) for mu in args.frictions for cfl in args.cfls] if args.study == "ground"
             else [dict(cfl=cfl) for cfl in args.cfls])
     for run in runs:
-        for n in RESOLUTIONS:
+        for n in args.resolutions:
             measured = (ground(1 / n, run["cfl"], run["friction"], args.arch) if args.study == "ground"
                         else floating(1 / n, run["cfl"], args.arch))
             emit(dict(dx=f"1/{n}", **run, **measured))

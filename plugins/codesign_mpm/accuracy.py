@@ -256,7 +256,7 @@ def gait(frame: int, k: int, amplitude: float = 0.3, hz: float = 4.0) -> np.ndar
 
 
 def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[float] = None, arch: str = "cpu",
-              flip: Optional[float] = None):
+              flip: Optional[float] = None, terrain_height: float = 0.13):
     """The registered environment at setting `s`; terrain at 0.13 (above the wall band down to dx 1/24)
     with the preset's friction unless `friction` is given; `flip`: the robot's FLIP share (None: the
     environment's default)."""
@@ -267,7 +267,7 @@ def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[flo
     config = PRESET_CONFIGS[environment](
         dx=s.dx, cfl=s.cfl, dtype=s.dtype, horizon=horizon, checkpoint_every=s.checkpoint_every, arch=arch,
         flip=FLIP_DEFAULT if flip is None else flip,
-        terrain=TerrainConfig(height=0.13, friction=preset.friction if friction is None else friction),
+        terrain=TerrainConfig(height=terrain_height, friction=preset.friction if friction is None else friction),
         robot=RobotConfig(youngs_modulus=preset.robot_youngs_modulus, particles_per_cell=s.particles_per_cell,
                           position=[0.35, 0.25]))
     if config.cover is not None:
@@ -275,10 +275,10 @@ def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[flo
     return LocomotionEnv(config, preset)
 
 
-def measure_robot(environment: str) -> Callable[[Setting, dict], dict]:
+def measure_robot(environment: str, arch: str = "cpu") -> Callable[[Setting, dict], dict]:
     def run(s: Setting, params: dict) -> dict:
         frames = int(round(params.get("seconds", 1.0) / 8e-3))
-        env = robot_env(environment, s, frames)
+        env = robot_env(environment, s, frames, arch=arch)
         com0 = env.reset()[:3]  # the observation starts with the robot's centre of mass
         k = env.action_dim
         env.step(gait(0, k))  # compiles (or loads) the kernels: not timed
