@@ -427,9 +427,11 @@ PROBLEMS: dict[str, Problem] = {
         "converged: the finest setting (a fixed sine gait, environment `ground`)", measure_robot("ground"), {},
         notes="A travelling gait (about 0.1 body lengths per second), with the FLIP share every recipe runs "
               "with (0.99). The error falls with dx; the paper preset (dx 1/96) comes within 10% of the "
-              "reference, dx 1/32 to 1/64 are a third to a half off: where the terrain's surface falls between "
-              "node layers decides how much of the body grips (docs/contact.md sections 10 and 12), so compare "
-              "designs and controllers at one setting and confirm a number at paper quality."),
+              "reference, dx 1/32 to 1/64 are a third to a half off. The reference is not converged either: where "
+              "the terrain's surface falls within a cell decides how much of the body grips, and moving it by less "
+              "than a cell moves the distance by 14 to 31% at every dx from 1/32 to 1/192, the reference setting "
+              "included (docs/contact.md section 13). Compare designs and controllers at one setting and confirm a "
+              "number at paper quality."),
     "robot_desert": Problem(
         "robot_desert", "Robot in the desert (sand cover): distance in 1 s (quick size: 0.25 s)",
         "distance travelled along x",
@@ -437,7 +439,8 @@ PROBLEMS: dict[str, Problem] = {
         notes="The sand layer is 0.02 thick: half a cell at dx 1/24, so coarse grids hardly resolve it. With the "
               "layer the scene has about 8x the particles of the robot alone, so dx 1/96 and finer were left out to "
               "keep the default report near 30 minutes: the finest setting is dx 1/64, and the paper and reference "
-              "presets are not measured here."),
+              "presets are not measured here. Measured on a GPU at the reference setting, the distance does not "
+              "converge: 5.1, 7.4, 5.4, 7.0 mm at dx 1/64, 1/96, 1/128, 1/160 (docs/contact.md section 13)."),
     "gradient": Problem(
         "gradient", "Gradients of the distance: d/d(actions) and d/d(log stiffness)",
         "d distance / d actions (T x K) and d distance / d log E",
