@@ -41,9 +41,13 @@ QUALITY: dict[str, Quality] = {
                                "confirm a number at paper"),
     "paper": Quality(dx=1 / 96, particles_per_cell=8, cfl=0.4, dtype="float32",
                      purpose="figures and final numbers: the first setting on the ground robot's front whose "
-                             "distance is within 10% of the reference"),
+                             "distance is within 10% of the reference. Still, moving the terrain by less than a "
+                             "cell moves a gait's distance by about 15% here (docs/contact.md section 13): compare "
+                             "designs on one terrain, not against numbers from another height or dx"),
     "reference": Quality(dx=1 / 128, particles_per_cell=27, cfl=0.2, dtype="float64",
-                         purpose="the finest setting measured on ground: the answer the others are compared with"),
+                         purpose="the finest setting measured on ground: the answer the others are compared with. "
+                                 "Not converged: the terrain's offset within a cell moves a gait's distance by "
+                                 "about 24% here too, and dx 1/192 differs by 16% (docs/contact.md section 13)"),
 }
 QUALITY_NAMES = tuple(QUALITY)
 
