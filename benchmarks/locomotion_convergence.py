@@ -1,13 +1,16 @@
 """Does a gait's distance converge with resolution (issue 22)? The fixed gait of `codesign bench
 accuracy`'s robot_ground problem on floors of several frictions, at several dx and CFL numbers;
 the same muscled box floating free (no gravity, no terrain), whose shape should converge; and
-whether random gaits rank the same at the quality presets (Spearman's rho of their distances).
+whether random gaits rank the same at the quality presets (Spearman's rho of their distances);
+the report's reference setting at finer grids (reference); and the terrain's surface moved within
+one cell (offsets).
 Prints JSON lines (and appends them to --out); docs/contact.md reads them.
 
     python benchmarks/locomotion_convergence.py ground --arch cuda --out records.jsonl
     python benchmarks/locomotion_convergence.py floating
     python benchmarks/locomotion_convergence.py ranking --gaits 5
     python benchmarks/locomotion_convergence.py reference --environment desert --resolutions 64 96 128 --arch cuda
+    python benchmarks/locomotion_convergence.py offsets --resolutions 48 96 --frictions 0.5 5
 """
 from __future__ import annotations
 
@@ -89,9 +92,35 @@ def reference(environment: str, n: int, arch: str, seconds: float) -> dict:
                 substeps_per_frame=record["substeps_per_frame"], process_s=time.perf_counter() - t0)
 
 
+def offsets(n: int, friction: float, fractions: list[float], arch: str, fine: bool) -> dict:
+    """The gait's distance with the terrain's surface at (floor(0.13 n) + f) / n for each fraction f
+    of a cell: how much where the surface falls between node layers moves it (docs/contact.md
+    section 13). `fine`: at the accuracy report's reference setting (27 ppc, CFL 0.2, float64)."""
+    from codesign_mpm import runtime
+
+    setting = (Setting(dx=1 / n, particles_per_cell=27, cfl=0.2, dtype="float64") if fine
+               else Setting(dx=1 / n))
+    runtime.init_taichi(arch, setting.dtype)
+    distances = []
+    for f in fractions:
+        env = robot_env("ground", setting, FRAMES, friction=friction, arch=arch,
+                        terrain_height=(math.floor(0.13 * n) + f) / n)
+        com0 = env.reset()[:3]
+        for frame in range(FRAMES):
+            com = env.step(gait(frame, env.action_dim)).info["com"]
+        distances.append(float(com[0] - com0[0]))
+        env.close()
+    mean = float(np.mean(distances))
+    return dict(setting=setting.label(), friction=friction, fractions=fractions, distances=distances, mean=mean,
+                half_range_over_mean=(max(distances) - min(distances)) / 2 / abs(mean))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("study", choices=["ground", "floating", "ranking", "reference"])
+    parser.add_argument("study", choices=["ground", "floating", "ranking", "reference", "offsets"])
+    parser.add_argument("--fractions", type=float, nargs="+", default=[0.05, 0.25, 0.5, 0.75],
+                        help="offsets: where the surface falls within a cell")
+    parser.add_argument("--fine", action="store_true", help="offsets: at the reference setting (27 ppc, f64)")
     parser.add_argument("--environment", default="ground", choices=["ground", "desert"],
                         help="reference: which robot problem")
     parser.add_argument("--resolutions", type=int, nargs="+", default=list(RESOLUTIONS), help="1 / dx")
@@ -116,6 +145,11 @@ def main() -> None:
     if args.study == "reference":
         for n in args.resolutions:
             emit(dict(dx=f"1/{n}", **reference(args.environment, n, args.arch, args.seconds)))
+        return
+    if args.study == "offsets":
+        for n in args.resolutions:
+            for mu in args.frictions:
+                emit(dict(dx=f"1/{n}", **offsets(n, mu, args.fractions, args.arch, args.fine)))
         return
     runs = ([dict(friction=mu, cfl=cfl) for mu in args.frictions for cfl in args.cfls] if args.study == "ground"
             else [dict(cfl=cfl) for cfl in args.cfls])

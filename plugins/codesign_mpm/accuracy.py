@@ -257,9 +257,9 @@ def gait(frame: int, k: int, amplitude: float = 0.3, hz: float = 4.0) -> np.ndar
 
 def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[float] = None, arch: str = "cpu",
               flip: Optional[float] = None, terrain_height: float = 0.13):
-    """The registered environment at setting `s`; terrain at 0.13 (above the wall band down to dx 1/24)
-    with the preset's friction unless `friction` is given; `flip`: the robot's FLIP share (None: the
-    environment's default)."""
+    """The registered environment at setting `s`; terrain at `terrain_height` (0.13 is above the wall
+    band down to dx 1/24) with the preset's friction unless `friction` is given; `flip`: the robot's
+    FLIP share (None: the environment's default)."""
     from codesign_mpm.config import FLIP_DEFAULT, PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
     from codesign_mpm.env import LocomotionEnv
 
