@@ -339,7 +339,9 @@ def plot(study: Study, rows: list[Row], path: Path) -> Path:
     from codesign.plots import pyplot
 
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(rows), 3.2), constrained_layout=True)
+    many = len(rows) > 8  # a grid's arms: narrower bars, labels turned upright
+    fig, ax = plt.subplots(figsize=(1.6 + (0.45 if many else 1.3) * len(rows), 6.5 if many else 3.2),
+                           constrained_layout=True)
     xs = range(len(rows))
     ax.bar([x - 0.2 for x in xs], [r.mean for r in rows], width=0.4, yerr=[0 if math.isnan(r.std) else r.std
                                                                              for r in rows],
@@ -349,7 +351,7 @@ def plot(study: Study, rows: list[Row], path: Path) -> Path:
     ax.bar([x + 0.2 for x in xs], [r.arm.paper if r.arm.paper is not None else 0 for r in rows], width=0.4,
            label="paper", color="tab:gray")
     ax.axhline(0, color="k", linewidth=0.5)
-    ax.set_xticks(list(xs), [r.arm.label for r in rows], fontsize=8)
+    ax.set_xticks(list(xs), [r.arm.label for r in rows], fontsize=8, rotation=90 if many else 0)
     ax.set_ylabel("per-step return")
     ax.set_title(study.title, fontsize=9)
     ax.legend(fontsize=8)
