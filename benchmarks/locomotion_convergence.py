@@ -30,9 +30,14 @@ FRAMES = 125  # 1 s of 8 ms control steps
 RESOLUTIONS = (32, 48, 64, 96, 128)  # 1 / dx
 
 
-def ground(dx: float, cfl: float, friction: float, arch: str, actions=gait) -> dict:
+def fine(n: int) -> Setting:
+    """The accuracy report's reference setting (27 particles per cell, CFL 0.2, float64) at dx 1/n."""
+    return Setting(dx=1 / n, particles_per_cell=27, cfl=0.2, dtype="float64")
+
+
+def ground(setting: Setting, friction: float, arch: str, actions=gait, terrain_height: float = 0.13) -> dict:
     """Distance along x after 1 s (and after 0.5 s) of a gait (`actions(frame, k)`), on robot_ground's setup."""
-    env = robot_env("ground", Setting(dx=dx, cfl=cfl), FRAMES, friction=friction, arch=arch)
+    env = robot_env("ground", setting, FRAMES, friction=friction, arch=arch, terrain_height=terrain_height)
     com0 = env.reset()[:3]
     t0 = time.perf_counter()
     xs = [float(env.step(actions(f, env.action_dim)).info["com"][0] - com0[0]) for f in range(FRAMES)]
@@ -71,7 +76,7 @@ def ranking(gaits: int, arch: str) -> list[dict]:
     between the presets' rankings."""
     from codesign_mpm.quality import QUALITY
 
-    distances = {name: [ground(QUALITY[name].dx, QUALITY[name].cfl, 0.5, arch, random_gait(seed))["distance"]
+    distances = {name: [ground(Setting(dx=QUALITY[name].dx, cfl=QUALITY[name].cfl), 0.5, arch, random_gait(seed))["distance"]
                         for seed in range(gaits)] for name in ("draft", "default", "paper")}
     records = [dict(preset=name, distances=d) for name, d in distances.items()]
     for a, b in (("draft", "paper"), ("default", "paper"), ("draft", "default")):
@@ -82,34 +87,19 @@ def ranking(gaits: int, arch: str) -> list[dict]:
 def reference(environment: str, n: int, arch: str, seconds: float) -> dict:
     """`codesign bench accuracy`'s robot problem at its reference setting (27 particles per cell,
     CFL 0.2, float64) at dx 1/n: is the report's reference converged (do the two finest agree)?"""
-    from codesign_mpm import runtime
-
-    setting = Setting(dx=1 / n, particles_per_cell=27, cfl=0.2, dtype="float64")
-    runtime.init_taichi(arch, setting.dtype)
     t0 = time.perf_counter()
-    record = measure_robot(environment, arch)(setting, dict(seconds=seconds))
+    record = measure_robot(environment, arch)(fine(n), dict(seconds=seconds))
     return dict(environment=environment, distance=record["value"], particles=record["particles"],
                 substeps_per_frame=record["substeps_per_frame"], process_s=time.perf_counter() - t0)
 
 
-def offsets(n: int, friction: float, fractions: list[float], arch: str, fine: bool) -> dict:
+def offsets(n: int, friction: float, fractions: list[float], arch: str, at_reference: bool) -> dict:
     """The gait's distance with the terrain's surface at (floor(0.13 n) + f) / n for each fraction f
     of a cell: how much where the surface falls between node layers moves it (docs/contact.md
-    section 13). `fine`: at the accuracy report's reference setting (27 ppc, CFL 0.2, float64)."""
-    from codesign_mpm import runtime
-
-    setting = (Setting(dx=1 / n, particles_per_cell=27, cfl=0.2, dtype="float64") if fine
-               else Setting(dx=1 / n))
-    runtime.init_taichi(arch, setting.dtype)
-    distances = []
-    for f in fractions:
-        env = robot_env("ground", setting, FRAMES, friction=friction, arch=arch,
-                        terrain_height=(math.floor(0.13 * n) + f) / n)
-        com0 = env.reset()[:3]
-        for frame in range(FRAMES):
-            com = env.step(gait(frame, env.action_dim)).info["com"]
-        distances.append(float(com[0] - com0[0]))
-        env.close()
+    section 13). `at_reference`: at the accuracy report's reference setting (`fine`)."""
+    setting = fine(n) if at_reference else Setting(dx=1 / n)
+    distances = [ground(setting, friction, arch, terrain_height=(math.floor(0.13 * n) + f) / n)["distance"]
+                 for f in fractions]
     mean = float(np.mean(distances))
     return dict(setting=setting.label(), friction=friction, fractions=fractions, distances=distances, mean=mean,
                 half_range_over_mean=(max(distances) - min(distances)) / 2 / abs(mean))
@@ -155,7 +145,7 @@ def main() -> None:
             else [dict(cfl=cfl) for cfl in args.cfls])
     for run in runs:
         for n in args.resolutions:
-            measured = (ground(1 / n, run["cfl"], run["friction"], args.arch) if args.study == "ground"
+            measured = (ground(Setting(dx=1 / n, cfl=run["cfl"]), run["friction"], args.arch) if args.study == "ground"
                         else floating(1 / n, run["cfl"], args.arch))
             emit(dict(dx=f"1/{n}", **run, **measured))
 
