@@ -256,10 +256,10 @@ def gait(frame: int, k: int, amplitude: float = 0.3, hz: float = 4.0) -> np.ndar
 
 
 def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[float] = None, arch: str = "cpu",
-              flip: Optional[float] = None, terrain_height: float = 0.13):
+              flip: Optional[float] = None, terrain_height: float = 0.13, contact: str = "nodes"):
     """The registered environment at setting `s`; terrain at `terrain_height` (0.13 is above the wall
     band down to dx 1/24) with the preset's friction unless `friction` is given; `flip`: the robot's
-    FLIP share (None: the environment's default)."""
+    FLIP share (None: the environment's default); `contact`: the terrain's (nodes or surface)."""
     from codesign_mpm.config import FLIP_DEFAULT, PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
     from codesign_mpm.env import LocomotionEnv
 
@@ -267,7 +267,8 @@ def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[flo
     config = PRESET_CONFIGS[environment](
         dx=s.dx, cfl=s.cfl, dtype=s.dtype, horizon=horizon, checkpoint_every=s.checkpoint_every, arch=arch,
         flip=FLIP_DEFAULT if flip is None else flip,
-        terrain=TerrainConfig(height=terrain_height, friction=preset.friction if friction is None else friction),
+        terrain=TerrainConfig(height=terrain_height, friction=preset.friction if friction is None else friction,
+                              contact=contact),
         robot=RobotConfig(youngs_modulus=preset.robot_youngs_modulus, particles_per_cell=s.particles_per_cell,
                           position=[0.35, 0.25]))
     if config.cover is not None:
@@ -275,10 +276,10 @@ def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[flo
     return LocomotionEnv(config, preset)
 
 
-def measure_robot(environment: str, arch: str = "cpu") -> Callable[[Setting, dict], dict]:
+def measure_robot(environment: str, arch: str = "cpu", contact: str = "nodes") -> Callable[[Setting, dict], dict]:
     def run(s: Setting, params: dict) -> dict:
         frames = int(round(params.get("seconds", 1.0) / 8e-3))
-        env = robot_env(environment, s, frames, arch=arch)
+        env = robot_env(environment, s, frames, arch=arch, contact=contact)
         com0 = env.reset()[:3]  # the observation starts with the robot's centre of mass
         k = env.action_dim
         env.step(gait(0, k))  # compiles (or loads) the kernels: not timed

@@ -195,16 +195,14 @@ def measure_adaptive(case: Case, frames: int = 3, repeats: int = 5) -> dict:
 FLIP_MEASURED = 0.99  # the share docs/contact.md measured converging in time
 
 
-def measure_flip(case: Case, frames: int = 3, repeats: int = 5, backward_frames: int = 20) -> dict:
-    """What the FLIP share of the velocity update costs (docs/contact.md section 10): wall time per
-    frame forward and (forward + backward) per differentiable episode with `scene.flip` 0.99
-    against APIC alone (flip 0, the default), in one process, timed alternately."""
+def _timed_pair(variants: dict, frames: int, repeats: int, backward_frames: int) -> dict:
+    """Wall time per frame forward and per differentiable episode (forward + backward) of two
+    scene variants (name -> Scene, the measured one first), in one process, timed alternately;
+    the costs are the medians of the first's time over the second's."""
     from codesign_mpm import build_particles
     from codesign_mpm.engine import Simulator
 
-    scene = robot_scene(case)
-    particles = build_particles(scene)
-    variants = {"flip": replace(scene, flip=FLIP_MEASURED), "apic": replace(scene, flip=0.0)}
+    particles = build_particles(next(iter(variants.values())))
     sims = {name: Simulator(v, particles) for name, v in variants.items()}
     grads = {name: Simulator(v, particles, requires_grad=True, max_frames=backward_frames)
              for name, v in variants.items()}
@@ -224,12 +222,28 @@ def measure_flip(case: Case, frames: int = 3, repeats: int = 5, backward_frames:
             grads[name].rollout(actions)
             grads[name].backward(com_v=np.tile([1.0, 0.0, 0.0], (backward_frames + 1, 1)))
             backward[name].append(time.perf_counter() - t0)
-    ratio = lambda d: float(np.median(np.asarray(d["flip"]) / np.asarray(d["apic"])))  # noqa: E731
-    return dict(measure="flip", particles=particles.n, flip=FLIP_MEASURED,
-                flip_s_per_frame=float(np.median(forward["flip"])), apic_s_per_frame=float(np.median(forward["apic"])),
-                forward_cost=ratio(forward), episode_frames=backward_frames,
-                flip_episode_s=float(np.median(backward["flip"])), apic_episode_s=float(np.median(backward["apic"])),
-                forward_backward_cost=ratio(backward))
+    first, second = variants
+    ratio = lambda d: float(np.median(np.asarray(d[first]) / np.asarray(d[second])))  # noqa: E731
+    return {"particles": particles.n, f"{first}_s_per_frame": float(np.median(forward[first])),
+            f"{second}_s_per_frame": float(np.median(forward[second])), "forward_cost": ratio(forward),
+            "episode_frames": backward_frames, f"{first}_episode_s": float(np.median(backward[first])),
+            f"{second}_episode_s": float(np.median(backward[second])), "forward_backward_cost": ratio(backward)}
+
+
+def measure_flip(case: Case, frames: int = 3, repeats: int = 5, backward_frames: int = 20) -> dict:
+    """What the FLIP share of the velocity update costs (docs/contact.md section 10): `scene.flip`
+    0.99 against APIC alone (flip 0, a bare scene's default)."""
+    scene = robot_scene(case)
+    variants = {"flip": replace(scene, flip=FLIP_MEASURED), "apic": replace(scene, flip=0.0)}
+    return dict(measure="flip", flip=FLIP_MEASURED, **_timed_pair(variants, frames, repeats, backward_frames))
+
+
+def measure_contact(case: Case, frames: int = 3, repeats: int = 5, backward_frames: int = 20) -> dict:
+    """What the surface contact costs (docs/contact.md section 14): `terrain.contact: surface`
+    against the node contact, both with the FLIP share of a recipe."""
+    scene = replace(robot_scene(case), flip=FLIP_MEASURED)
+    variants = {"surface": replace(scene, terrain=replace(scene.terrain, contact="surface")), "nodes": scene}
+    return dict(measure="contact", **_timed_pair(variants, frames, repeats, backward_frames))
 
 
 COVERS = ("none", "sand", "snow", "clay", "mud", "water")
@@ -299,7 +313,7 @@ def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True
     from codesign.progress import progress_bar
 
     machine = _machine()
-    with progress_bar(total=8 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
+    with progress_bar(total=9 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
         for scale in scales:
             for case in (Case(scale, "float32"), Case(scale, "float64"), Case(scale, "float32", "full")):
                 emit(dict(scale=scale, dtype=case.dtype, grid_region=case.grid_region,
@@ -316,6 +330,8 @@ def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True
             emit(dict(scale=scale, dtype="float32", **_run_isolated("adaptive", case), **machine))
             bar.update(1)
             emit(dict(scale=scale, dtype="float32", **_run_isolated("flip", case), **machine))
+            bar.update(1)
+            emit(dict(scale=scale, dtype="float32", **_run_isolated("contact", case), **machine))
             bar.update(1)
 
 
@@ -406,5 +422,6 @@ if __name__ == "__main__":  # one isolated measurement, used by _run_isolated / 
     else:
         kind, scale, dtype, region, kwargs = sys.argv[1:6]
         measure = {"forward": measure_forward, "backward": measure_backward, "batch": measure_batch,
-                   "scatter": measure_scatter, "adaptive": measure_adaptive, "flip": measure_flip}[kind]
+                   "scatter": measure_scatter, "adaptive": measure_adaptive, "flip": measure_flip,
+                   "contact": measure_contact}[kind]
         print(json.dumps(measure(Case(scale, dtype, region), **json.loads(kwargs))))

@@ -136,6 +136,10 @@ class TerrainConfig:
     friction: Optional[float] = field(
         default=None, metadata={"ge": 0, "help": "Coulomb coefficient; null = the environment's own"}
     )
+    contact: str = field(default="nodes", metadata={
+        "choices": ["nodes", "surface"],
+        "help": "nodes: hold the grid nodes below the surface; surface: contact at the exact surface, "
+                "whatever its height within a cell (docs/contact.md section 14)"})
 
 
 def _vector(default: list[float], help: str) -> Any:

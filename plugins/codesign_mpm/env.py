@@ -116,7 +116,8 @@ def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
         size=list(config.size),
         dx=config.dx,
         terrain=TerrainSpec(kind=t.kind, height=t.height, amplitude=t.amplitude, frequency=t.frequency,
-                            seed=t.seed, friction=preset.friction if t.friction is None else t.friction),
+                            seed=t.seed, friction=preset.friction if t.friction is None else t.friction,
+                            contact=t.contact),
         bodies=[BodySpec(
             name="robot",
             shape=shape,

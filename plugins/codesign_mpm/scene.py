@@ -20,6 +20,7 @@ TERRAIN_KINDS = ("none", "flat", "incline", "perlin")
 DTYPES = ("float32", "float64")
 ARCHS = ("cpu", "cuda", "gpu", "vulkan", "metal")
 GRID_REGIONS = ("bbox", "full")
+TERRAIN_CONTACTS = ("nodes", "surface")
 
 
 class SceneError(ValueError):
@@ -111,6 +112,9 @@ class TerrainSpec:
     frequency: float = 4.0  # perlin: features per unit length of the first octave
     octaves: int = 3
     seed: int = 0
+    # nodes: the nodes below the surface are held (fast; where the surface falls within a cell moves a
+    # gait's distance by up to a third); surface: contact at the exact surface (docs/contact.md section 14)
+    contact: str = "nodes"
 
 
 @dataclass
@@ -184,6 +188,7 @@ def validate_scene(scene: Scene) -> None:
     for key, value, allowed in (("dtype", scene.dtype, DTYPES), ("arch", scene.arch, ARCHS),
                                 ("grid_region", scene.grid_region, GRID_REGIONS),
                                 ("terrain.kind", scene.terrain.kind, TERRAIN_KINDS),
+                                ("terrain.contact", scene.terrain.contact, TERRAIN_CONTACTS),
                                 ("muscle_model", scene.muscle_model, MUSCLE_MODELS)):
         if value not in allowed:
             _fail(key, value, f"one of {', '.join(allowed)}")

@@ -27,10 +27,16 @@ COVERS = {"ground": None, "ice": None, "desert": "sand", "clay": "clay", "wetlan
           "shallow_water": "water", "ocean": "water"}
 T = 8  # frames: the cover has settled onto the terrain and carries the robot
 MAX_FRAMES, SEGMENT = 12, 64  # shared by both simulators of an environment, so they share compiled kernels
-MUSCLE_STEP = 1e-5
-"""A foot's membership in a muscle moves the loss by ~1e-6 per unit: with a step of 1e-6 the difference
-is at float64's round-off (on Perlin terrain, 1.49689e-6 against the adjoint's 1.49638e-6; steps
-of 1e-5 and 1e-4 give 1.49641e-6 and 1.496377e-6, converging on it)."""
+MUSCLE_STEP = 1e-4
+FOOT_STEP = 1e-5  # relative, for the foot's Young's modulus and fibre direction
+"""Steps where the central difference has converged and round-off has not yet set in. A foot's
+membership in a muscle moves the loss by ~1e-6 per unit: on Perlin terrain 1.49689e-6 at a step
+of 1e-6 against the adjoint's 1.49638e-6, 1.49641e-6 and 1.496377e-6 at 1e-5 and 1e-4; clay's
+foot (a plastic body: kinks) wants the small end, 5.24164e-6 at 1e-4 and 1e-5, 5.24977e-6 at 1e-3.
+With the surface contact the foot's fibre direction at a step of 1e-6 gives 1.52348e-6 against
+the adjoint's 1.52381e-6; ground's foot at 1e-5, 1e-4 (Young's modulus, relative): 1.668357e-10,
+1.668389e-10 against 1.668389e-10. A cover particle's Young's modulus keeps a relative 1e-6
+(mud's yield kinks at 1e-5)."""
 
 
 def central(f, eps: float) -> float:
@@ -63,8 +69,8 @@ def check_every_input(name: str, **overrides) -> None:
         robot, cover = np.flatnonzero(p.robot), np.flatnonzero(~p.robot)
         foot = robot[np.argmin(p.x[robot, 1])]  # a robot particle on the ground (or in the cover)
         cases = [("actions", (0, 0), 1e-6), ("actions", (T - 1, 3), 1e-6), ("volume", foot, 1e-5 * p.volume[foot]),
-                 ("youngs_modulus", foot, 1e-6 * p.youngs_modulus[foot]), ("muscle", (foot, 1), MUSCLE_STEP),
-                 ("fiber", (foot, 1), 1e-6), ("x0", (foot, 0), 1e-6), ("v0", (foot, 1), 1e-6),
+                 ("youngs_modulus", foot, FOOT_STEP * p.youngs_modulus[foot]), ("muscle", (foot, 1), MUSCLE_STEP),
+                 ("fiber", (foot, 1), FOOT_STEP), ("x0", (foot, 0), 1e-6), ("v0", (foot, 1), 1e-6),
                  ("C0", (foot, 0, 1), 1e-4)]
         if len(cover):
             assert np.abs(g.x0[cover]).max() > 0, "the cover should influence the loss"

@@ -26,6 +26,9 @@ VARIANTS = {
     "ground with the FLIP share": ("ground", dict(flip=0.99, terrain=TerrainConfig(kind="perlin", height=0.1,
                                                                                   amplitude=0.03, frequency=6.0,
                                                                                   friction=0.5))),
+    # the surface contact (opt-in): its kernel's adjoint, p2g's and grid_op's terms, on a slope with FLIP
+    "ground with the surface contact": ("ground", dict(flip=0.99, terrain=TerrainConfig(
+        kind="perlin", height=0.1, amplitude=0.03, frequency=6.0, friction=0.5, contact="surface"))),
     # every preset's water is inviscid: the viscous stress's gradient otherwise goes unchecked
     "viscous shallow water": ("shallow_water", dict(cover=CoverConfig(kind="water", thickness=0.05,
                                                                       bulk_modulus=1e5, viscosity=20.0))),

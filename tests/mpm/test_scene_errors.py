@@ -102,6 +102,8 @@ def test_bad_scene_values():
         validate_scene(Scene(flip=1, bodies=[BodySpec()]))
     with pytest.raises(SceneError, match=r"terrain\.kind = 'lava'"):
         validate_scene(Scene(terrain=TerrainSpec(kind="lava"), bodies=[BodySpec()]))
+    with pytest.raises(SceneError, match=r"terrain\.contact = 'grid'.*nodes, surface"):
+        validate_scene(Scene(terrain=TerrainSpec(contact="grid"), bodies=[BodySpec()]))
     with pytest.raises(SceneError, match=r"bodies = \[\].*at least one body"):
         validate_scene(Scene())
     with pytest.raises(SceneError, match=r"dtype = 'float16'"):

@@ -6,13 +6,14 @@ One substep (`Simulator._substep`; the kernels live in the modules named):
     stress   -> F <- (I + dt C) F; each material's Kirchhoff stress or return mapping, plus the
                 muscle [constitutive, materials/]: in kernels of their own ahead of p2g for scenes
                 with non-elastic materials and differentiable layouts, else inside p2g
-    p2g      -> scatter m v and the MLS force/affine term to 27 nodes [transfer]
+    contact  -> (terrain.contact: surface) each particle's impulse at the terrain's exact surface [contact]
+    p2g      -> scatter m v and the MLS force/affine term (and the contact's impulse) to 27 nodes [transfer]
     grid_op  -> v = p / m + dt g; terrain (height-map SDF, Coulomb friction); domain walls [grid]
     g2p      -> gather v and C; x <- x + dt v (with `scene.flip`, a FLIP share) [transfer]
 
 and its reverse (`Simulator._substep_grad`): the grid kept from the segment's recompute, then
-g2p's, grid_op's, p2g's and the stress's adjoints. `rollout` stores checkpoints, `backward`
-recomputes each segment from its checkpoint and runs the substeps' reverses.
+g2p's, grid_op's, p2g's, the contact's and the stress's adjoints. `rollout` stores checkpoints,
+`backward` recomputes each segment from its checkpoint and runs the substeps' reverses.
 """
 # (no `from __future__ import annotations`: Taichi reads kernel annotations at runtime)
 
@@ -223,6 +224,7 @@ class Simulator:
             requires_grad=requires_grad,
             scatter_copies=runtime.scatter_copies(),
             has_flip=scene.flip > 0 and any(m in flip_models() for m in models),
+            surface_contact=scene.terrain.kind != "none" and scene.terrain.contact == "surface",
         ))
         self.k = _acquire(self.layout)
         self._generation = runtime.generation
@@ -441,6 +443,8 @@ class Simulator:
             self.k._clear_grid()
         if self.k.separate_stress:
             self._stress_update(s, so, t, j)
+        if self.k.surface_contact:
+            self.k._terrain_contact(s, self.n)
         self.k._p2g(s, so, t, self.n, j)
         if self.k.private_scatter:
             self.k._sum_copies(False)
@@ -460,6 +464,8 @@ class Simulator:
             self.k._load_box(s, self._grid_boxes)
             self.k._load_grid(s, self._grid_store)
             self._stress_update(s, s + 1, t)
+            if self.k.surface_contact:
+                self.k._terrain_contact(s, self.n)  # p2g's adjoint reads it
             self.k._grid_op()
         else:
             self._grid_update(s, s + 1, t)
@@ -469,6 +475,8 @@ class Simulator:
             self.k._sum_copies(True)
         self.k._grid_op.grad()
         self.k._p2g_adjoint(s, self.n)
+        if self.k.surface_contact:
+            self.k._terrain_contact.grad(s, self.n)
         for model, start, end in self._runs:
             if material(model).kind == "hencky":  # the eigenframe algebra by hand, the model's map by Taichi
                 self.k._plastic_adjoint_front(model, s, s + 1, t, start, end)

@@ -9,7 +9,8 @@ substep's grid (the touched box, `grid._store_grid`) for the reverse pass, which
 the stress and grid_op again.
 
 `_Storage` is one class (Taichi compiles kernels per object) assembled from the engine's parts:
-`transfer._Transfers` (p2g, g2p, adjoints), `grid._Grid` (grid update, terrain, walls),
+`transfer._Transfers` (p2g, g2p, adjoints), `contact._Contact` (the surface contact at the particles),
+`grid._Grid` (grid update, terrain, walls),
 `eigen._Eigen` (eigenframes) and `constitutive._Constitutive` (materials, muscles); it
 allocates every field they use, here, in one order (field ids key Taichi's offline cache).
 """
@@ -24,6 +25,7 @@ from taichi.lang import impl
 
 from codesign_mpm import runtime
 from codesign_mpm.engine.constitutive import _Constitutive
+from codesign_mpm.engine.contact import _Contact
 from codesign_mpm.engine.eigen import JACOBI_TOL_ULPS, _Eigen
 from codesign_mpm.engine.grid import _Grid
 from codesign_mpm.engine.transfer import _Transfers
@@ -52,10 +54,11 @@ class Layout:
     scatter_copies: int = 1  # private grids p2g scatters into without atomics (runtime.scatter_copies)
     members: int = 1  # scenes simulated side by side (codesign_mpm.batch); 1: a plain simulator
     has_flip: bool = False  # FLIP's share in the elastic bodies' velocity update (scene.flip > 0)
+    surface_contact: bool = False  # the terrain's contact at its exact surface (terrain.contact: surface)
 
 
 @ti.data_oriented
-class _Storage(_Transfers, _Grid, _Eigen, _Constitutive):
+class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
     """Taichi fields and kernels for one layout.
 
     Taichi compiles kernels per set of fields, so a fresh storage costs a compile (about 3 s
@@ -87,8 +90,10 @@ class _Storage(_Transfers, _Grid, _Eigen, _Constitutive):
         self.copies = layout.scatter_copies
         self.private_scatter = layout.scatter_copies > 1
         self.has_flip = layout.has_flip
-        # a private grid node: momentum, mass (and with FLIP the momentum before forces)
-        self.part_width = 7 if layout.has_flip else 4
+        self.surface_contact = layout.surface_contact
+        # a private grid node: momentum, mass (with FLIP the momentum before forces; with the surface
+        # contact the friction budget and the mass in contact, last)
+        self.part_width = 4 + 3 * layout.has_flip + 2 * layout.surface_contact
         # a batch's member grids lie side by side along x: member b owns nodes [b nx, (b + 1) nx)
         self.grid_total = (layout.grid_shape[0] * layout.members,) + tuple(layout.grid_shape[1:])
         n, K, gs, grad = layout.capacity, max(layout.n_actuators, 1), layout.grid_shape, layout.requires_grad
@@ -171,6 +176,9 @@ class _Storage(_Transfers, _Grid, _Eigen, _Constitutive):
             self.grid_q = vec(3, self.grid_total, True)  # momentum before forces: sum w m (v + C (x_i - x_p))
             self.grid_v_old = vec(3, self.grid_total, True)  # its velocity, grid_q / m (grid_op)
             self.flip_ratio = scalar(())
+        if self.surface_contact:  # last, as FLIP's (contact._terrain_contact)
+            self.contact = vec(5, (n,), True)  # each particle's normal impulse, friction budget, share in contact
+            self.grid_contact = vec(2, self.grid_total, True)  # a node's friction budget and mass in contact
         self._tree = builder.finalize()
 
     def free(self) -> None:

@@ -119,6 +119,20 @@ class _Transfers:
         return q
 
     @ti.func
+    def _part(self, momentum, mass, before, budget):
+        """A private grid node's entry (grid._sum_copies reads it): momentum and mass, with FLIP the
+        momentum before forces, with the surface contact the friction budget and the mass in contact."""
+        m = momentum
+        if ti.static(self.has_flip and self.surface_contact):
+            return ti.Vector([m[0], m[1], m[2], mass, before[0], before[1], before[2], budget[0], budget[1]])
+        elif ti.static(self.has_flip):
+            return ti.Vector([m[0], m[1], m[2], mass, before[0], before[1], before[2]])
+        elif ti.static(self.surface_contact):
+            return ti.Vector([m[0], m[1], m[2], mass, budget[0], budget[1]])
+        else:
+            return ti.Vector([m[0], m[1], m[2], mass])
+
+    @ti.func
     def _p2g_particle(self, p, s, so, t, copy):
         """Scatter particle p's momentum, mass and MLS force to its 27 nodes: into private grid
         `copy` with plain adds where the scatter is private (its chunk of particles is one thread's),
@@ -139,29 +153,32 @@ class _Transfers:
         mass = self.rho[p] * vol
         affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * self.C[s, p]
         inertia = mass * self.C[s, p]
+        own = mass * self.v[s, p]
+        budget = ti.Vector.zero(float, 2)  # friction budget, mass in contact (contact._terrain_contact)
+        if ti.static(self.surface_contact):
+            impulse = self.contact[p]
+            own += ti.Vector([impulse[0], impulse[1], impulse[2]])  # the normal impulse, a force
+            budget = ti.Vector([impulse[3], mass * impulse[4]])
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = (ti.cast(offset, float) - fx) * dx
             weight = w[i][0] * w[j][1] * w[k][2]
-            momentum = weight * (mass * self.v[s, p] + affine @ dpos)
+            momentum = weight * (own + affine @ dpos)
             I = node + offset
+            before = ti.Vector.zero(float, 3)
             if ti.static(self.has_flip):
                 before = weight * (mass * self.v[s, p] + inertia @ dpos)  # without the force
-                if ti.static(self.private_scatter):
-                    c = self.grid_part[copy, I[0], I[1], I[2]]
-                    self.grid_part[copy, I[0], I[1], I[2]] = c + ti.Vector(
-                        [momentum[0], momentum[1], momentum[2], weight * mass, before[0], before[1], before[2]])
-                else:
-                    self.grid_v_in[I] += momentum
-                    self.grid_m[I] += weight * mass
-                    self.grid_q[I] += before
-            elif ti.static(self.private_scatter):  # plain adds: a float atomic add is a compare-and-swap loop
+            if ti.static(self.private_scatter):  # plain adds: a float atomic add is a compare-and-swap loop
                 c = self.grid_part[copy, I[0], I[1], I[2]]
-                self.grid_part[copy, I[0], I[1], I[2]] = c + ti.Vector(
-                    [momentum[0], momentum[1], momentum[2], weight * mass])
+                self.grid_part[copy, I[0], I[1], I[2]] = c + self._part(momentum, weight * mass, before,
+                                                                         weight * budget)
             else:
                 self.grid_v_in[I] += momentum
                 self.grid_m[I] += weight * mass
+                if ti.static(self.has_flip):
+                    self.grid_q[I] += before
+                if ti.static(self.surface_contact):
+                    self.grid_contact[I] += weight * budget
 
     @ti.func
     def _p2g_adjoint_particle(self, p, s):
@@ -173,7 +190,10 @@ class _Transfers:
         gradients, S0 = sum w_n g_n and S1 = sum w_n g_n n^T: A's gradient is dx (S1 - S0 fx^T),
         fx's is sum (dw_n / dfx) (g_n . q_n + m h_n) - dx A^T S0 (n enters as constants, so the
         loop over nodes has no 3x3 products). With FLIP, node n also gets w_n (m v + m C (n - fx) dx)
-        (the momentum before forces), whose gradient enters the same way with A = m C."""
+        (the momentum before forces), whose gradient enters the same way with A = m C. With the
+        surface contact, the impulse J joins m v in c (its gradient is S0) and node n gets w_n b,
+        b = (budget, m share): b's gradient is sum w_n e_n (e_n: the node's contact gradients), and
+        the kernel that made J and b (`contact._terrain_contact`) takes both back to x, v and vol."""
         dt, dx = self._dt(p), self.dx[None]
         inv_dx = 1.0 / dx
         node, fx, w = self._stencil(p, s)
@@ -184,6 +204,13 @@ class _Transfers:
         affine = stress_scale * vol * tau + mass * self.C[s, p]
         a_dx = dx * affine
         c = mass * v - a_dx @ fx
+        budget = ti.Vector.zero(float, 2)
+        share = 0.0
+        if ti.static(self.surface_contact):
+            impulse = self.contact[p]
+            c += ti.Vector([impulse[0], impulse[1], impulse[2]])
+            share = impulse[4]
+            budget = ti.Vector([impulse[3], mass * share])
         i_dx = dx * mass * self.C[s, p]  # FLIP's momentum before forces: its affine part has no stress
         c_old = mass * v - i_dx @ fx
         S0 = ti.Vector.zero(float, 3)
@@ -191,6 +218,7 @@ class _Transfers:
         S0_old = ti.Vector.zero(float, 3)
         S1_old = ti.Matrix.zero(float, 3, 3)
         h_sum = 0.0
+        budget_bar = ti.Vector.zero(float, 2)
         fx_bar = ti.Vector.zero(float, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             o = ti.static((i, j, k))
@@ -204,6 +232,10 @@ class _Transfers:
             fx_bar += d_weight * (g.dot(q) + mass * h)
             S0 += weight * g
             h_sum += weight * h
+            if ti.static(self.surface_contact):
+                g_budget = self.grid_contact.grad[node + ti.Vector(o)]
+                fx_bar += d_weight * g_budget.dot(budget)
+                budget_bar += weight * g_budget
             if ti.static(self.has_flip):
                 g_old = self.grid_q.grad[node + ti.Vector(o)]
                 for d in ti.static(range(3)):
@@ -217,6 +249,9 @@ class _Transfers:
         mass_bar = v.dot(S0) + h_sum + (self.C[s, p] * affine_bar).sum()
         v_bar = mass * S0
         C_bar = mass * affine_bar
+        if ti.static(self.surface_contact):  # its only writer: _terrain_contact's adjoint reads it
+            self.contact.grad[p] = ti.Vector([S0[0], S0[1], S0[2], budget_bar[0], mass * budget_bar[1]])
+            mass_bar += share * budget_bar[1]
         if ti.static(self.has_flip):
             inertia_bar = dx * (S1_old - S0_old.outer_product(fx))
             fx_bar -= i_dx.transpose() @ S0_old
@@ -301,11 +336,7 @@ class _Transfers:
         scatters)."""
         if ti.static(self.private_scatter):
             part = self.grid_part[copy, I[0], I[1], I[2]]
-            if ti.static(self.has_flip):
-                part += ti.Vector([g[0], g[1], g[2], 0.0, g_old[0], g_old[1], g_old[2]])
-            else:
-                part += ti.Vector([g[0], g[1], g[2], 0.0])
-            self.grid_part[copy, I[0], I[1], I[2]] = part
+            self.grid_part[copy, I[0], I[1], I[2]] = part + self._part(g, 0.0, g_old, ti.Vector.zero(float, 2))
         else:
             self.grid_v_out.grad[I] += g
             if ti.static(self.has_flip):
