@@ -56,24 +56,27 @@ def test_block_on_incline_slides_iff_tan_theta_exceeds_mu(theta_deg, contact):
         sim.close()
 
 
+def gait_distance(cfl: float = 0.4, **env) -> float:
+    """Distance along x after 1 s of docs/accuracy.md's travelling gait on robot_ground at dx 1/32
+    (`env`: robot_env's options: flip, terrain_height, contact)."""
+    from codesign_mpm.accuracy import Setting, gait, robot_env
+
+    env = robot_env("ground", Setting(dx=DX, cfl=cfl), 125, **env)
+    try:
+        start = env.reset()[:3]
+        for f in range(125):
+            com = env.step(gait(f, env.action_dim)).info["com"]
+        return float(com[0] - start[0])
+    finally:
+        env.close()
+
+
 def test_the_surface_contact_does_not_see_where_the_surface_falls_within_a_cell():
     """The node contact holds the layers of nodes below the surface, so moving the terrain by less than
     a cell moved a gait's distance by 16% at dx 1/32 (26.1 and 22.3 mm at offsets 0.05 and 0.75;
     docs/contact.md section 13); the surface contact follows the particles at the exact surface
     (measured: 20.4 and 21.3 mm, and 19.7 to 21.3 over four offsets; section 14)."""
-    from codesign_mpm.accuracy import Setting, gait, robot_env
-
-    def distance(offset: float) -> float:
-        env = robot_env("ground", Setting(dx=DX), 125, terrain_height=(4 + offset) * DX, contact="surface")
-        try:
-            start = env.reset()[:3]
-            for f in range(125):
-                com = env.step(gait(f, env.action_dim)).info["com"]
-            return float(com[0] - start[0])
-        finally:
-            env.close()
-
-    near, far = distance(0.05), distance(0.75)
+    near, far = (gait_distance(terrain_height=(4 + offset) * DX, contact="surface") for offset in (0.05, 0.75))
     assert near > 0.015 and far > 0.015, "the gait should move the box forwards"
     assert near == pytest.approx(far, rel=0.08)
 
@@ -194,19 +197,7 @@ def test_a_gait_converges_in_time_with_the_flip_share_and_drifts_without_it():
     """APIC damps non-affine motion once per substep, so a gait on terrain loses distance as the
     step shrinks; with the FLIP share it has a limit (docs/contact.md section 10). The travelling
     gait for 1 s at dx 1/32: APIC 26.2 mm at cfl 0.4 and 16.0 at cfl 0.1; flip 0.99 29.1 and 28.9."""
-    from codesign_mpm.accuracy import Setting, gait, robot_env
-
-    def distance(cfl: float, flip: float) -> float:
-        env = robot_env("ground", Setting(dx=1 / 32, cfl=cfl), 125, flip=flip)
-        try:
-            start = env.reset()[:3]
-            for f in range(125):
-                com = env.step(gait(f, env.action_dim)).info["com"]
-            return float(com[0] - start[0])
-        finally:
-            env.close()
-
-    flip = {cfl: distance(cfl, 0.99) for cfl in (0.4, 0.1)}
-    apic = {cfl: distance(cfl, 0.0) for cfl in (0.4, 0.1)}
+    flip = {cfl: gait_distance(cfl, flip=0.99) for cfl in (0.4, 0.1)}
+    apic = {cfl: gait_distance(cfl, flip=0.0) for cfl in (0.4, 0.1)}
     assert flip[0.1] == pytest.approx(flip[0.4], rel=0.05)
     assert apic[0.1] < 0.8 * apic[0.4]
