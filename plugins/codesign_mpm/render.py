@@ -13,7 +13,9 @@ a > 0 (contraction), blue for a < 0, grey where passive; orange (whatever the ac
 a robot particle has torn off its body: it lies outside the body's largest piece at that frame
 (by mass; by count for an export, which has no masses), pieces being the particles whose B-spline
 stencils share grid nodes (`codesign_mpm.integrity.pieces`; docs/integrity.md), and the frame's
-label says the share of the robot's mass torn off ("torn 23.5% (orange)"). Stills colour the
+label says the share of the robot's mass torn off ("torn 23.5% (orange)"). Water is drawn as a
+translucent veil over what lies behind it (`VEILED`), so a robot in the ocean or in shallow water
+stays in sight. Stills colour the
 design by muscle group (the tab10 colours of `codesign.artifacts.PALETTE`, as in best/design.ply).
 
 Videos are written with imageio: ``.mp4`` (H.264 through imageio-ffmpeg, which ships its own
@@ -57,6 +59,9 @@ MATERIAL_COLORS: dict[str, tuple[float, float, float]] = {
     "water": (0.30, 0.60, 0.95), "mud": (0.42, 0.32, 0.22),
 }
 """Colours of non-robot particles by material kind (elastic bodies share a green)."""
+VEILED = ("water",)
+VEIL_OPACITY = 0.25
+"""Materials drawn see-through, and how much of their colour covers what lies behind them."""
 
 
 @dataclass
@@ -346,6 +351,9 @@ class Renderer:
         self.camera = Camera.fit(camera, lo, hi, size)
         self.background = terrain_layer(rec, self.camera, lo, hi)
         self.radius = 0.3 * rec.dx  # particles sit about dx / 2 apart (8 per cell)
+        from codesign_mpm.materials import MATERIALS
+
+        self.veiled = np.isin(rec.material, [MATERIALS[name].id for name in VEILED])
         activations = [np.abs(rec.activation(f)[rec.robot]) for f in range(1, rec.frames + 1)]
         self.scale = float(max((a.max() for a in activations if a.size), default=0.0))
         self.figure = Figure(figsize=(size[0] / 100, size[1] / 100), dpi=100)
@@ -358,7 +366,13 @@ class Renderer:
 
     def draw(self, colors: np.ndarray, frame: int, label: str) -> np.ndarray:
         image, depth = (a.copy() for a in self.background)
-        splat(image, depth, self.camera, self.rec.x[frame], colors, self.radius)
+        x, veiled = self.rec.x[frame], self.veiled
+        splat(image, depth, self.camera, x[~veiled], colors[~veiled], self.radius)
+        if veiled.any():  # the veil's nearest disc, blended over whatever is behind it
+            veil, veil_depth = image.copy(), depth.copy()
+            splat(veil, veil_depth, self.camera, x[veiled], colors[veiled], self.radius)
+            front = veil_depth < depth
+            image[front] = (1 - VEIL_OPACITY) * image[front] + VEIL_OPACITY * veil[front]
         self.image.set_data(np.clip(image, 0, 1))
         self.text.set_text(label)
         self.figure.canvas.draw()

@@ -12,7 +12,7 @@ import pytest
 from codesign import plugins, runner
 from codesign.artifacts import PALETTE
 from codesign.recipe import resolve_recipe
-from codesign_mpm.render import TORN, Renderer, episode_colors, record_run, render
+from codesign_mpm.render import TORN, Recording, Renderer, episode_colors, record_run, render
 from codesign_mpm.scene import BodySpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec
 from codesign_mpm.simulate import simulate
 
@@ -103,6 +103,30 @@ def test_particles_torn_off_the_body_are_orange_and_the_label_says_how_much(run_
     images = [renderer.frame(f) for f in (1, 2)]
     assert f"torn {100 * torn:.3g}% (orange)" in renderer.text.get_text()
     assert count(images[0], orange) == 0 and count(images[1], orange) > 50
+
+
+def test_a_robot_behind_water_shows_through_it():
+    """Water is a translucent veil: a grey robot block behind a water block (seen from the side) still
+    shows, tinted, and a sand block in front of it hides it."""
+    from codesign_mpm.materials import MATERIALS
+
+    dx = 1 / 32
+    grid = np.stack(np.meshgrid(*[np.arange(6) * dx / 2] * 3, indexing="ij"), -1).reshape(-1, 3)
+    robot, cover = grid + [0.4, 0.2, 0.3], grid + [0.4, 0.2, 0.1]  # the camera looks along +z: cover in front
+
+    def drawn(kind: str) -> np.ndarray:
+        n = len(grid)
+        rec = Recording(x=np.concatenate([robot, cover])[None].repeat(2, 0), actions=np.zeros((1, 0)),
+                        material=np.r_[np.full(n, MATERIALS["neo_hookean"].id), np.full(n, MATERIALS[kind].id)],
+                        robot=np.r_[np.ones(n, bool), np.zeros(n, bool)], muscle=np.zeros((2 * n, 0)),
+                        frame_dt=8e-3, dx=dx, heights=None)
+        return Renderer(rec, "side").frame(1)[40:]  # below the label, whose anti-aliased text is grey
+
+    water, sand = drawn("water").astype(int), drawn("sand").astype(int)
+    tinted = lambda r, g, b: (b > r + 15) & (b < r + 80) & (r > 60) & (r < 200)  # noqa: E731 grey seen through blue
+    opaque_water = lambda r, g, b: b > r + 120  # noqa: E731 water's own colour (0.30, 0.60, 0.95)
+    assert count(water, tinted) > 200 and count(water, opaque_water) == 0
+    assert count(sand, grey) == 0 and count(sand, tinted) == 0
 
 
 def test_eval_prints_the_replayed_bodys_integrity(run_dir, cli):
