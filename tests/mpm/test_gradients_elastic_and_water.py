@@ -26,7 +26,7 @@ VARIANTS = {
     "ground with the FLIP share": ("ground", dict(flip=0.99, terrain=TerrainConfig(kind="perlin", height=0.1,
                                                                                   amplitude=0.03, frequency=6.0,
                                                                                   friction=0.5))),
-    # the surface contact (opt-in): its kernel's adjoint, p2g's and grid_op's terms, on a slope with FLIP
+    # the surface contact (opt-in): its impulse and scatter kernels' adjoints and p2g's term, on a slope with FLIP
     "ground with the surface contact": ("ground", dict(flip=0.99, terrain=TerrainConfig(
         kind="perlin", height=0.1, amplitude=0.03, frequency=6.0, friction=0.5, contact="surface"))),
     # every preset's water is inviscid: the viscous stress's gradient otherwise goes unchecked

@@ -1,28 +1,34 @@
-"""The surface contact (`terrain.contact: surface`): each particle's contact with the terrain's
-exact surface, handed to p2g, and the node holding it feeds (`grid._grid_op`).
+"""The surface contact (`terrain.contact: surface`): the terrain's exact surface as a constraint on
+the velocity of the particles touching it, solved on the grid after its update.
 
-    contact -> j_n = max(0, allowed - v_n), v = v_p + dt g (per unit mass),
-               allowed = -phi / dt above the surface (approach at most to it within the step),
-                         PUSH_OUT (-phi) / dt below it (a share of the depth undone per substep);
-               the particle's normal impulse m j_n n, its friction budget mu m j_n, and its share in
-               contact min(1, j_n / (|g . n| dt)) (1 for a particle the terrain carries)
-    p2g     -> scatters the impulse with the momentum, the budget and m times the share to the nodes
-    grid_op -> a node's share in contact (its contact mass over its mass) loses its approach
-               velocity; Coulomb friction stops its sliding within mu times that impulse plus the
-               budget; the node contact holds only nodes BACKSTOP cells below the surface
+    _terrain_contact (before p2g) -> per particle: the surface's normal n at its position, the
+        normal velocity it may have, a = -phi / dt above the surface (reach it within the substep,
+        not pass it) or PUSH_OUT (-phi) / dt below it, and whether it takes part (it would end the
+        substep within half its own spacing of the surface)
+    p2g -> scatters the mass taking part, so a node knows its share in contact s = M_c / M
+    _contact_impulse (after the grid update) -> per particle taking part, from the grid's velocity
+        at it, v = sum w v_i: the normal impulse j_n = max(0, m* (a - v . n)) and Coulomb friction
+        j_t = min(m* |v_t|, mu j_n) against its sliding v_t, with m* = m / sum w s_i
+    _contact_scatter -> adds each impulse to its nodes' velocities, w j / M_i
 
-Why: the default node contact (`nodes`) holds whole layers of nodes, the ones below the surface,
-and a body grips through the particles whose stencils reach them, so where the surface falls
-within a cell moved a gait's distance by 14 to 31% at every dx (docs/contact.md section 13).
-Here what is held, and how much, follows the particles at the surface: a node is held in
-proportion to the mass the contact carries there, whatever its own height. Why the node holds
-too: a particle's impulse stops only its own approach, so alone it is a soft contact (a body
-rang on it and slid on a slope within the friction cone); a node held by its share stops the
-mass above as well, and friction bounded by the normal impulse sticks a body exactly.
-Measured in docs/contact.md section 14 (also what it costs: its time-step dependence at dx 1/32).
+Why this form: the constraint is on the particle (where the surface is), its unknowns on the nodes
+(where the momentum is). A particle's impulse spread over its nodes changes its own velocity by
+j sum w^2 / M_i, and its neighbours' through the nodes they share; m* splits each node's mass
+among the particles in contact there (in proportion to their weights), so a layer of particles
+that all need the same change gets it in one pass, on the mass that carries them and no more
+(one Jacobi pass of a mass-split solve: more passes changed a gait's distance by under 10% and
+the incline's answers not at all). What this fixes, measured in docs/contact.md section 15:
+- where the surface falls within a cell no longer moves the grip (the node contact holds whole
+  layers of nodes, so it did, by 14 to 31% at every dx: section 13);
+- the answer converges in time: an earlier surface contact (section 14) took part of the normal
+  load as particle impulses before p2g and held nodes by their share after it, a split that
+  depended on the step (a gait went 21 -> 31 mm from cfl 0.4 to 0.0125 at dx 1/48); here the
+  whole impulse is computed once, from the velocity the substep's forces produced.
+The node contact stays as a backstop BACKSTOP cells below the surface (`grid._grid_op`).
 
-`_Contact` is a part of the engine's storage class (`storage._Storage`). The kernel's adjoint is
-Taichi's (`_terrain_contact.grad`): it is per particle, without a stencil, and compiles quickly.
+`_Contact` is a part of the engine's storage class (`storage._Storage`). Its kernels' adjoints are
+Taichi's (`.grad`): the reverse pass runs the scatter's adjoint, takes the scatter back (sign -1)
+to recover the grid velocity the impulses were computed from, then the impulses' adjoint.
 """
 # (no `from __future__ import annotations`: Taichi reads kernel annotations at runtime)
 
@@ -30,6 +36,8 @@ import taichi as ti
 
 PUSH_OUT = 0.1  # share of a particle's depth below the surface undone per substep (1 made bodies bounce)
 BACKSTOP = 1.5  # cells below the surface from which the node contact holds material whole
+SHARE_MIN = 1e-3  # a particle alone in its nodes' contact mass counts at most 1000 times its mass
+MASS_EPS = 1e-12  # grid nodes lighter than this are treated as empty
 
 
 class _Contact:
@@ -41,24 +49,73 @@ class _Contact:
         return ((1 - fu) * (1 - fw) * field[i0, k0] + fu * (1 - fw) * field[i0 + 1, k0]
                 + (1 - fu) * fw * field[i0, k0 + 1] + fu * fw * field[i0 + 1, k0 + 1])
 
+    @ti.func
+    def _surface_at(self, p, s):
+        """The terrain's unit normal under particle p at slot s and p's height above the surface
+        along it (to first order), both bilinear between the node columns around p."""
+        dx = self.dx[None]
+        xp = self.x[s, p]
+        u, w = xp[0] / dx, xp[2] / dx
+        i0 = ti.min(ti.max(ti.cast(ti.floor(u), ti.i32), 0), self.grid_shape[0] - 2)
+        k0 = ti.min(ti.max(ti.cast(ti.floor(w), ti.i32), 0), self.grid_shape[2] - 2)
+        fu, fw = u - i0, w - k0
+        nrm = self._bilinear(self.normal, i0, k0, fu, fw)
+        nrm = nrm / ti.sqrt(nrm.dot(nrm))
+        return nrm, (xp[1] - self._bilinear(self.height, i0, k0, fu, fw)) * nrm[1]
+
+    @ti.func
+    def _takes_part(self, p, s):
+        """1 if particle p at slot s would end the substep within half its own spacing of the surface
+        (spacing^3 = its volume), else 0: a switch, without a gradient. p2g scatters its mass with it;
+        the reverse pass recomputes it (`_contact_flags`)."""
+        nrm, phi = self._surface_at(p, s)
+        reach = phi + self._dt(p) * ti.min(0.0, self.v[s, p].dot(nrm))
+        return ti.select((reach < 0) | (reach * reach * reach < 0.125 * self.vol[p]), 1, 0)
+
     @ti.kernel
-    def _terrain_contact(self, s: ti.i32, n: ti.i32):
-        """Each particle's normal impulse, friction budget and share in contact at slot s (zero away
-        from the terrain) into `contact`. Branch-free (select, min, max) for Taichi's reverse mode."""
+    def _contact_flags(self, s: ti.i32, n: ti.i32):
+        """Which particles take part at slot s, as p2g found (for a reverse pass that loads the grid)."""
         for p in range(n):
-            dt, dx = self._dt(p), self.dx[None]
-            xp = self.x[s, p]
-            u, w = xp[0] / dx, xp[2] / dx
-            i0 = ti.min(ti.max(ti.cast(ti.floor(u), ti.i32), 0), self.grid_shape[0] - 2)
-            k0 = ti.min(ti.max(ti.cast(ti.floor(w), ti.i32), 0), self.grid_shape[2] - 2)
-            fu, fw = u - i0, w - k0
-            nrm = self._bilinear(self.normal, i0, k0, fu, fw)
-            nrm = nrm / ti.sqrt(nrm.dot(nrm))
-            phi = (xp[1] - self._bilinear(self.height, i0, k0, fu, fw)) * nrm[1]  # height above, to first order
-            v = self.v[s, p] + dt * self.gravity[None]
-            vn = v.dot(nrm)
-            jn = ti.max(0.0, ti.select(phi > 0, -phi / dt, -PUSH_OUT * phi / dt) - vn)
-            impulse = self.rho[p] * self.vol[p] * jn
-            share = ti.min(1.0, jn / ti.max(ti.abs(self.gravity[None].dot(nrm)) * dt, 1e-12))
-            self.contact[p] = ti.Vector([impulse * nrm[0], impulse * nrm[1], impulse * nrm[2],
-                                         self.friction[None] * impulse, share])
+            self.in_contact[p] = self._takes_part(p, s)
+
+    @ti.kernel
+    def _contact_impulse(self, s: ti.i32, n: ti.i32):
+        """The impulse of each particle taking part, from the updated grid velocity (grid_v_out) at
+        its position in slot s, into `impulse`."""
+        for p in range(n):
+            if self.in_contact[p] > 0:
+                nrm, phi = self._surface_at(p, s)
+                dt = self._dt(p)
+                allowed = ti.select(phi > 0, -phi / dt, -PUSH_OUT * phi / dt)  # the normal velocity it may have
+                node, fx, w = self._stencil(p, s)
+                v = ti.Vector.zero(float, 3)
+                share = 0.0  # sum w s_i: the share in contact of the mass at the particle
+                for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                    I = node + ti.Vector([i, j, k])
+                    weight = w[i][0] * w[j][1] * w[k][2]
+                    v += weight * self.grid_v_out[I]
+                    share += weight * self.grid_contact[I] / ti.max(self.grid_m[I], MASS_EPS)
+                m_split = self.rho[p] * self.vol[p] / ti.max(share, SHARE_MIN)
+                vn = v.dot(nrm)
+                jn = ti.max(0.0, m_split * (allowed - vn))
+                vt = v - vn * nrm
+                vt_norm = ti.sqrt(vt.dot(vt) + 1e-30)
+                jt = ti.min(m_split * vt_norm, self.friction[None] * jn)
+                self.impulse[p] = jn * nrm - (jt / vt_norm) * vt
+
+    @ti.kernel
+    def _contact_scatter(self, s: ti.i32, n: ti.i32, sign: float):
+        """Add sign times each impulse to its nodes' velocities (w j / M_i); sign -1 takes it back."""
+        for p in range(n):
+            if self.in_contact[p] > 0:
+                node, fx, w = self._stencil(p, s)
+                j = sign * self.impulse[p]
+                for i, k, l in ti.static(ti.ndrange(3, 3, 3)):
+                    I = node + ti.Vector([i, k, l])
+                    self.grid_v_out[I] += (w[i][0] * w[k][1] * w[l][2] / ti.max(self.grid_m[I], MASS_EPS)) * j
+
+    @ti.kernel
+    def _clear_impulse_grad(self, n: ti.i32):
+        """Zero the impulses' gradient, which the scatter's adjoint adds to."""
+        for p in range(n):
+            self.impulse.grad[p] = ti.Vector.zero(float, 3)

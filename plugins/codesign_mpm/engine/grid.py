@@ -3,9 +3,9 @@ the reverse pass, and the grid update
 
     v = p / m + dt g; terrain (height-map SDF, Coulomb friction); domain walls
 
-The terrain holds the nodes below its surface (`terrain.contact: nodes`), or, with the surface
-contact (`contact`), the share of each node's mass that the particles' contact reports, within
-the friction budget it scattered, with the node contact kept only `contact.BACKSTOP` cells down.
+The terrain holds the nodes below its surface (`terrain.contact: nodes`); with the surface contact
+(`contact`, whose impulses the grid takes after this update) only those `contact.BACKSTOP` cells
+down.
 
 `_Grid` is a part of the engine's storage class (`storage._Storage`). Its kernels visit only the
 box of nodes the particles touch (`transfer._bounds`), in every batch member's grid; the grid
@@ -15,9 +15,7 @@ update's adjoint is Taichi's (`_grid_op.grad`).
 
 import taichi as ti
 
-from codesign_mpm.engine.contact import BACKSTOP
-
-MASS_EPS = 1e-12  # grid nodes lighter than this are treated as empty
+from codesign_mpm.engine.contact import BACKSTOP, MASS_EPS
 
 
 class _Grid:
@@ -39,7 +37,7 @@ class _Grid:
             if ti.static(self.has_flip):
                 self.grid_q[I] = ti.Vector.zero(float, 3)
             if ti.static(self.surface_contact):
-                self.grid_contact[I] = ti.Vector.zero(float, 2)
+                self.grid_contact[I] = 0.0
 
     @ti.kernel
     def _sum_copies(self, adjoint: ti.template()):
@@ -63,7 +61,7 @@ class _Grid:
                 if ti.static(self.has_flip):
                     self.grid_q[I] = ti.Vector([total[4], total[5], total[6]])
                 if ti.static(self.surface_contact):
-                    self.grid_contact[I] = ti.Vector([total[self.part_width - 2], total[self.part_width - 1]])
+                    self.grid_contact[I] = total[self.part_width - 1]
 
     @ti.kernel
     def _store_grid(self, k: ti.i32, store: ti.types.ndarray(), box: ti.types.ndarray()):
@@ -91,8 +89,7 @@ class _Grid:
                     for c in ti.static(range(3)):
                         store[k, index, 4 + c] = self.grid_q[I][c]
                 if ti.static(self.surface_contact):
-                    for c in ti.static(range(2)):
-                        store[k, index, self.part_width - 2 + c] = self.grid_contact[I][c]
+                    store[k, index, self.part_width - 1] = self.grid_contact[I]
 
     @ti.kernel
     def _load_box(self, k: ti.i32, box: ti.types.ndarray()):
@@ -114,8 +111,7 @@ class _Grid:
             if ti.static(self.has_flip):
                 self.grid_q[I] = ti.Vector([store[k, index, 4], store[k, index, 5], store[k, index, 6]])
             if ti.static(self.surface_contact):
-                self.grid_contact[I] = ti.Vector([store[k, index, self.part_width - 2],
-                                                  store[k, index, self.part_width - 1]])
+                self.grid_contact[I] = store[k, index, self.part_width - 1]
 
     @ti.kernel
     def _clear_grid_grad(self):
@@ -129,7 +125,7 @@ class _Grid:
                 self.grid_q.grad[I] = ti.Vector.zero(float, 3)
                 self.grid_v_old.grad[I] = ti.Vector.zero(float, 3)
             if ti.static(self.surface_contact):
-                self.grid_contact.grad[I] = ti.Vector.zero(float, 2)
+                self.grid_contact.grad[I] = 0.0
 
     @ti.kernel
     def _grid_op(self):
@@ -153,14 +149,6 @@ class _Grid:
                     below = 0.0  # how deep below the surface a node is held whole
                     if ti.static(self.surface_contact):
                         below = BACKSTOP * dx
-                        # the share of the node's mass in contact loses its approach velocity; Coulomb
-                        # friction within that normal impulse and the particles' friction budget
-                        budget = self.grid_contact[I]
-                        held = ti.min(1.0, budget[1] / m) * ti.max(0.0, -v.dot(nrm))
-                        v += held * nrm
-                        vt = v - v.dot(nrm) * nrm
-                        vt_norm = ti.sqrt(vt.dot(vt) + 1e-30)
-                        v -= (ti.min(budget[0] / m + mu * held, vt_norm) / vt_norm) * vt
                     if (ti.cast(I[1], float) * dx - self.height[local[0], local[2]]) * nrm[1] < -below:
                         vn = v.dot(nrm)
                         if vn < 0:

@@ -443,12 +443,17 @@ class Simulator:
             self.k._clear_grid()
         if self.k.separate_stress:
             self._stress_update(s, so, t, j)
-        if self.k.surface_contact:
-            self.k._terrain_contact(s, self.n)
         self.k._p2g(s, so, t, self.n, j)
         if self.k.private_scatter:
             self.k._sum_copies(False)
         self.k._grid_op()
+        if self.k.surface_contact:
+            self._surface_contact(s)
+
+    def _surface_contact(self, s: int) -> None:
+        """The surface contact's impulses at slot s, from the updated grid and added to it (contact.py)."""
+        self.k._contact_impulse(s, self.n)
+        self.k._contact_scatter(s, self.n, 1.0)
 
     def _stress_update(self, s: int, so: int, t: int, j: int = 0) -> None:
         """The stress (muscle included) of substep s, and the plastic models' return-mapped F in slot so."""
@@ -465,18 +470,23 @@ class Simulator:
             self.k._load_grid(s, self._grid_store)
             self._stress_update(s, s + 1, t)
             if self.k.surface_contact:
-                self.k._terrain_contact(s, self.n)  # p2g's adjoint reads it
+                self.k._contact_flags(s, self.n)
             self.k._grid_op()
+            if self.k.surface_contact:
+                self._surface_contact(s)
         else:
             self._grid_update(s, s + 1, t)
         self.k._clear_grid_grad()
         self.k._g2p_adjoint(s, self.n)
         if self.k.private_scatter:
             self.k._sum_copies(True)
+        if self.k.surface_contact:  # the impulses were computed from the grid velocity before their scatter
+            self.k._clear_impulse_grad(self.n)
+            self.k._contact_scatter.grad(s, self.n, 1.0)
+            self.k._contact_scatter(s, self.n, -1.0)
+            self.k._contact_impulse.grad(s, self.n)
         self.k._grid_op.grad()
         self.k._p2g_adjoint(s, self.n)
-        if self.k.surface_contact:
-            self.k._terrain_contact.grad(s, self.n)
         for model, start, end in self._runs:
             if material(model).kind == "hencky":  # the eigenframe algebra by hand, the model's map by Taichi
                 self.k._plastic_adjoint_front(model, s, s + 1, t, start, end)

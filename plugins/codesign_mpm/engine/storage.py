@@ -92,8 +92,8 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         self.has_flip = layout.has_flip
         self.surface_contact = layout.surface_contact
         # a private grid node: momentum, mass (with FLIP the momentum before forces; with the surface
-        # contact the friction budget and the mass in contact, last)
-        self.part_width = 4 + 3 * layout.has_flip + 2 * layout.surface_contact
+        # contact the mass in contact, last)
+        self.part_width = 4 + 3 * layout.has_flip + layout.surface_contact
         # a batch's member grids lie side by side along x: member b owns nodes [b nx, (b + 1) nx)
         self.grid_total = (layout.grid_shape[0] * layout.members,) + tuple(layout.grid_shape[1:])
         n, K, gs, grad = layout.capacity, max(layout.n_actuators, 1), layout.grid_shape, layout.requires_grad
@@ -176,9 +176,10 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
             self.grid_q = vec(3, self.grid_total, True)  # momentum before forces: sum w m (v + C (x_i - x_p))
             self.grid_v_old = vec(3, self.grid_total, True)  # its velocity, grid_q / m (grid_op)
             self.flip_ratio = scalar(())
-        if self.surface_contact:  # last, as FLIP's (contact._terrain_contact)
-            self.contact = vec(5, (n,), True)  # each particle's normal impulse, friction budget, share in contact
-            self.grid_contact = vec(2, self.grid_total, True)  # a node's friction budget and mass in contact
+        if self.surface_contact:  # last, as FLIP's (contact.py)
+            self.in_contact = scalar((n,), dtype=ti.i32)  # whether a particle takes part (contact._takes_part)
+            self.impulse = vec(3, (n,), True)  # each particle's contact impulse (contact._contact_impulse)
+            self.grid_contact = scalar(self.grid_total, True)  # a node's mass in contact
         self._tree = builder.finalize()
 
     def free(self) -> None:

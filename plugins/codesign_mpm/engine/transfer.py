@@ -119,16 +119,16 @@ class _Transfers:
         return q
 
     @ti.func
-    def _part(self, momentum, mass, before, budget):
+    def _part(self, momentum, mass, before, in_contact):
         """A private grid node's entry (grid._sum_copies reads it): momentum and mass, with FLIP the
-        momentum before forces, with the surface contact the friction budget and the mass in contact."""
+        momentum before forces, with the surface contact the mass in contact."""
         m = momentum
         if ti.static(self.has_flip and self.surface_contact):
-            return ti.Vector([m[0], m[1], m[2], mass, before[0], before[1], before[2], budget[0], budget[1]])
+            return ti.Vector([m[0], m[1], m[2], mass, before[0], before[1], before[2], in_contact])
         elif ti.static(self.has_flip):
             return ti.Vector([m[0], m[1], m[2], mass, before[0], before[1], before[2]])
         elif ti.static(self.surface_contact):
-            return ti.Vector([m[0], m[1], m[2], mass, budget[0], budget[1]])
+            return ti.Vector([m[0], m[1], m[2], mass, in_contact])
         else:
             return ti.Vector([m[0], m[1], m[2], mass])
 
@@ -154,11 +154,11 @@ class _Transfers:
         affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * self.C[s, p]
         inertia = mass * self.C[s, p]
         own = mass * self.v[s, p]
-        budget = ti.Vector.zero(float, 2)  # friction budget, mass in contact (contact._terrain_contact)
+        in_contact = 0.0  # the mass taking part in the surface contact (contact.py)
         if ti.static(self.surface_contact):
-            impulse = self.contact[p]
-            own += ti.Vector([impulse[0], impulse[1], impulse[2]])  # the normal impulse, a force
-            budget = ti.Vector([impulse[3], mass * impulse[4]])
+            taking_part = self._takes_part(p, s)
+            self.in_contact[p] = taking_part
+            in_contact = mass * ti.cast(taking_part, float)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = (ti.cast(offset, float) - fx) * dx
@@ -171,14 +171,14 @@ class _Transfers:
             if ti.static(self.private_scatter):  # plain adds: a float atomic add is a compare-and-swap loop
                 c = self.grid_part[copy, I[0], I[1], I[2]]
                 self.grid_part[copy, I[0], I[1], I[2]] = c + self._part(momentum, weight * mass, before,
-                                                                         weight * budget)
+                                                                         weight * in_contact)
             else:
                 self.grid_v_in[I] += momentum
                 self.grid_m[I] += weight * mass
                 if ti.static(self.has_flip):
                     self.grid_q[I] += before
                 if ti.static(self.surface_contact):
-                    self.grid_contact[I] += weight * budget
+                    self.grid_contact[I] += weight * in_contact
 
     @ti.func
     def _p2g_adjoint_particle(self, p, s):
@@ -191,9 +191,7 @@ class _Transfers:
         fx's is sum (dw_n / dfx) (g_n . q_n + m h_n) - dx A^T S0 (n enters as constants, so the
         loop over nodes has no 3x3 products). With FLIP, node n also gets w_n (m v + m C (n - fx) dx)
         (the momentum before forces), whose gradient enters the same way with A = m C. With the
-        surface contact, the impulse J joins m v in c (its gradient is S0) and node n gets w_n b,
-        b = (budget, m share): b's gradient is sum w_n e_n (e_n: the node's contact gradients), and
-        the kernel that made J and b (`contact._terrain_contact`) takes both back to x, v and vol."""
+        surface contact, node n also gets w_n m b (b: 1 if p takes part, else 0; a switch)."""
         dt, dx = self._dt(p), self.dx[None]
         inv_dx = 1.0 / dx
         node, fx, w = self._stencil(p, s)
@@ -204,13 +202,9 @@ class _Transfers:
         affine = stress_scale * vol * tau + mass * self.C[s, p]
         a_dx = dx * affine
         c = mass * v - a_dx @ fx
-        budget = ti.Vector.zero(float, 2)
-        share = 0.0
+        taking_part = 0.0
         if ti.static(self.surface_contact):
-            impulse = self.contact[p]
-            c += ti.Vector([impulse[0], impulse[1], impulse[2]])
-            share = impulse[4]
-            budget = ti.Vector([impulse[3], mass * share])
+            taking_part = ti.cast(self.in_contact[p], float)
         i_dx = dx * mass * self.C[s, p]  # FLIP's momentum before forces: its affine part has no stress
         c_old = mass * v - i_dx @ fx
         S0 = ti.Vector.zero(float, 3)
@@ -218,7 +212,6 @@ class _Transfers:
         S0_old = ti.Vector.zero(float, 3)
         S1_old = ti.Matrix.zero(float, 3, 3)
         h_sum = 0.0
-        budget_bar = ti.Vector.zero(float, 2)
         fx_bar = ti.Vector.zero(float, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             o = ti.static((i, j, k))
@@ -229,13 +222,11 @@ class _Transfers:
                 if ti.static(o[d]):
                     for e in ti.static(range(3)):
                         S1[e, d] += (o[d] * weight) * g[e]
+            if ti.static(self.surface_contact):  # the mass in contact enters as the mass does
+                h += taking_part * self.grid_contact.grad[node + ti.Vector(o)]
             fx_bar += d_weight * (g.dot(q) + mass * h)
             S0 += weight * g
             h_sum += weight * h
-            if ti.static(self.surface_contact):
-                g_budget = self.grid_contact.grad[node + ti.Vector(o)]
-                fx_bar += d_weight * g_budget.dot(budget)
-                budget_bar += weight * g_budget
             if ti.static(self.has_flip):
                 g_old = self.grid_q.grad[node + ti.Vector(o)]
                 for d in ti.static(range(3)):
@@ -249,9 +240,6 @@ class _Transfers:
         mass_bar = v.dot(S0) + h_sum + (self.C[s, p] * affine_bar).sum()
         v_bar = mass * S0
         C_bar = mass * affine_bar
-        if ti.static(self.surface_contact):  # its only writer: _terrain_contact's adjoint reads it
-            self.contact.grad[p] = ti.Vector([S0[0], S0[1], S0[2], budget_bar[0], mass * budget_bar[1]])
-            mass_bar += share * budget_bar[1]
         if ti.static(self.has_flip):
             inertia_bar = dx * (S1_old - S0_old.outer_product(fx))
             fx_bar -= i_dx.transpose() @ S0_old
@@ -270,8 +258,11 @@ class _Transfers:
         if ti.static(self.batched):
             if self._active(p, j):
                 self._p2g_particle(p, s, so, t, copy)
-            elif ti.static(not self.separate_stress):  # else _constitutive_update held it
-                self._hold_deformation(p, s, so)
+            else:
+                if ti.static(not self.separate_stress):  # else _constitutive_update held it
+                    self._hold_deformation(p, s, so)
+                if ti.static(self.surface_contact):  # sitting out, it takes no part in the contact
+                    self.in_contact[p] = 0
         else:
             self._p2g_particle(p, s, so, t, copy)
 
@@ -336,7 +327,7 @@ class _Transfers:
         scatters)."""
         if ti.static(self.private_scatter):
             part = self.grid_part[copy, I[0], I[1], I[2]]
-            self.grid_part[copy, I[0], I[1], I[2]] = part + self._part(g, 0.0, g_old, ti.Vector.zero(float, 2))
+            self.grid_part[copy, I[0], I[1], I[2]] = part + self._part(g, 0.0, g_old, 0.0)
         else:
             self.grid_v_out.grad[I] += g
             if ti.static(self.has_flip):
