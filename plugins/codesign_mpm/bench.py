@@ -239,7 +239,7 @@ def measure_flip(case: Case, frames: int = 3, repeats: int = 5, backward_frames:
 
 
 def measure_contact(case: Case, frames: int = 3, repeats: int = 5, backward_frames: int = 20) -> dict:
-    """What the surface contact costs (docs/contact.md section 14): `terrain.contact: surface`
+    """What the surface contact costs (docs/contact.md section 15): `terrain.contact: surface`
     against the node contact, both with the FLIP share of a recipe."""
     scene = replace(robot_scene(case), flip=FLIP_MEASURED)
     variants = {"surface": replace(scene, terrain=replace(scene.terrain, contact="surface")), "nodes": scene}

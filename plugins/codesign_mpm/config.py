@@ -139,7 +139,7 @@ class TerrainConfig:
     contact: str = field(default="nodes", metadata={
         "choices": ["nodes", "surface"],
         "help": "nodes: hold the grid nodes below the surface; surface: contact at the exact surface, "
-                "whatever its height within a cell (docs/contact.md section 14)"})
+                "whatever its height within a cell (docs/contact.md section 15)"})
 
 
 def _vector(default: list[float], help: str) -> Any:

@@ -44,7 +44,8 @@ QUALITY: dict[str, Quality] = {
                              "distance is within 10% of the reference. Still, moving the terrain by less than a "
                              "cell moves a gait's distance by about 15% here (docs/contact.md section 13): compare "
                              "designs on one terrain, not against numbers from another height or dx, or set "
-                             "terrain.contact: surface (1 to 4% at every dx; section 14)"),
+                             "terrain.contact: surface with cfl 0.2 (1 to 3% over offsets, converged in time; "
+                             "section 15)"),
     "reference": Quality(dx=1 / 128, particles_per_cell=27, cfl=0.2, dtype="float64",
                          purpose="the finest setting measured on ground: the answer the others are compared with. "
                                  "Not converged: the terrain's offset within a cell moves a gait's distance by "

@@ -113,7 +113,7 @@ class TerrainSpec:
     octaves: int = 3
     seed: int = 0
     # nodes: the nodes below the surface are held (fast; where the surface falls within a cell moves a
-    # gait's distance by up to a third); surface: contact at the exact surface (docs/contact.md section 14)
+    # gait's distance by up to a third); surface: contact at the exact surface (docs/contact.md section 15)
     contact: str = "nodes"
 
 
