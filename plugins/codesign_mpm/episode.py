@@ -88,7 +88,8 @@ def run_episode(env: EpisodeEnvironment, design: DesignFields, controller: Contr
         actions = torch.stack([torch.as_tensor(controller(None, t)).to(DTYPE) for t in range(T)])
         com_x, com_v, _, _ = simulate(sim, actions, volume=volume, youngs_modulus=stiffness, muscle=muscle,
                                       fiber=fiber, checkpoint_every=checkpoint_every)
-        rewards = torch.stack([env.task.reward(RobotFrame(t, t * dt, com_x[t], com_v[t])) for t in range(1, T + 1)])
+        rewards = torch.stack([env.task.reward(RobotFrame(t, t * dt, com_x[t], com_v[t], com_x_before=com_x[t - 1]))
+                               for t in range(1, T + 1)])
         com = com_x.detach().numpy()
     else:
         start = env.initial_state(particles)
@@ -96,7 +97,8 @@ def run_episode(env: EpisodeEnvironment, design: DesignFields, controller: Contr
                  torch.zeros(particles.n, 3, 3, dtype=DTYPE),
                  torch.as_tensor(start["F"], dtype=DTYPE), torch.as_tensor(start["Jp"], dtype=DTYPE))
         cover_x = None
-        rewards, coms, actions = [], [(weights @ state[0][:n]).detach().numpy()], []
+        before = weights @ state[0][:n]  # the centre of mass a step earlier (differentiable in the design)
+        rewards, coms, actions = [], [before.detach().numpy()], []
         robot_muscle = muscle[:n]
         for t in range(T):
             x, v = state[0][:n], state[1][:n]
@@ -107,7 +109,8 @@ def run_episode(env: EpisodeEnvironment, design: DesignFields, controller: Contr
             actions.append(action)
             state = step_frame(sim, state, action, inputs, checkpoint_every)
             x, v, F = state[0][:n], state[1][:n], state[3][:n]
-            frame = RobotFrame(t + 1, (t + 1) * dt, weights @ x, weights @ v, mass, x, v, F)
+            frame = RobotFrame(t + 1, (t + 1) * dt, weights @ x, weights @ v, mass, x, v, F, com_x_before=before)
+            before = frame.com_x
             rewards.append(env.task.reward(frame))
             coms.append(frame.com_x.detach().numpy())
         rewards, actions, com = torch.stack(rewards), torch.stack(actions), np.stack(coms)

@@ -39,6 +39,7 @@ class RobotFrame:
     x: torch.Tensor | None = None  # (n, 3)
     v: torch.Tensor | None = None  # (n, 3)
     F: torch.Tensor | None = None  # (n, 3, 3)
+    com_x_before: torch.Tensor | None = None  # (3,) the centre of mass after the step before (or at the start)
 
 
 @dataclass
@@ -76,7 +77,10 @@ def _unit(v: torch.Tensor) -> torch.Tensor:
 
 
 class MovementSpeed(Task):
-    """Mass-weighted mean velocity along the target direction: com_v . d."""
+    """The centre of mass's mean velocity along the target direction over the control step,
+    (com_x - com_x_before) . d / control_dt, so that an episode's rewards add up to its distance;
+    not the velocity at the step's end, which a stroke locked in phase to the control steps can
+    show at its fast instants only (an ocean gait scored 2.8 times its distance that way)."""
 
     needs_particles = False
 
@@ -85,7 +89,10 @@ class MovementSpeed(Task):
         self.direction = d / np.linalg.norm(d)
 
     def reward(self, frame: RobotFrame) -> torch.Tensor:
-        return frame.com_v @ torch.as_tensor(self.direction, dtype=frame.com_v.dtype)
+        if frame.com_x_before is None:
+            raise ValueError("movement_speed needs the frame's com_x_before (the centre of mass a step earlier)")
+        moved = (frame.com_x - torch.as_tensor(frame.com_x_before, dtype=frame.com_x.dtype))
+        return moved @ torch.as_tensor(self.direction, dtype=frame.com_x.dtype) / self.context.control_dt
 
     def info(self, step: int) -> np.ndarray:
         return self.direction

@@ -1,6 +1,7 @@
 """Locomotion environments on the real engine (forward only, dx = 1/32 to stay fast)."""
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 from codesign.cli import main
 from codesign.errors import RecipeError
 from codesign.interfaces import DesignFields
-from codesign_mpm.config import PRESETS, LocomotionConfig, TaskConfig, TerrainConfig
+from codesign_mpm.config import PRESET_CONFIGS, PRESETS, LocomotionConfig, RobotConfig, TaskConfig, TerrainConfig
 from codesign_mpm.env import LocomotionEnv
 
 GRAVITY = 3.8
@@ -138,6 +139,22 @@ def test_terrain_inside_the_wall_band_is_rejected():
     config = LocomotionConfig(dx=1 / 32, terrain=TerrainConfig(height=0.05))
     with pytest.raises(RecipeError, match=r"environment.terrain.height: 0.05 is below the wall band"):
         LocomotionEnv(config, PRESETS["ground"])
+
+
+def test_a_robot_near_the_wall_in_water_is_warned_about():
+    """Pushing the water against the wall moves a robot (docs/studies.md), so it is warned about in
+    the ocean; on ground the same position is fine."""
+    def build(name: str, x: float) -> None:
+        config = PRESET_CONFIGS[name](dx=1 / 32, horizon=2, terrain=TerrainConfig(height=0.1),
+                                      robot=RobotConfig(size=[0.3, 0.1, 0.1], position=[x, 0.25]))
+        LocomotionEnv(config, PRESETS[name]).close()
+
+    with pytest.warns(UserWarning, match=r"environment.robot.position: .* 0.00625 m from the wall band along x"):
+        build("ocean", 0.25)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        build("ocean", 0.45)
+        build("ground", 0.25)
 
 
 @pytest.mark.slow

@@ -12,10 +12,11 @@ MASS = torch.as_tensor(np.random.default_rng(1).uniform(0.5, 2.0, len(REST)))
 
 
 def frame(step: int, x: np.ndarray, v: np.ndarray, F: np.ndarray | None = None) -> RobotFrame:
+    """The robot at step `step` with particles at x, moving at the constant velocities v since the step before."""
     x, v = torch.as_tensor(x), torch.as_tensor(v)
     w = MASS / MASS.sum()
     F = torch.eye(3, dtype=torch.float64).expand(len(x), 3, 3) if F is None else torch.as_tensor(F)
-    return RobotFrame(step, step * DT, w @ x, w @ v, MASS, x, v, F)
+    return RobotFrame(step, step * DT, w @ x, w @ v, MASS, x, v, F, com_x_before=w @ (x - DT * v))
 
 
 def started(task):
@@ -30,6 +31,18 @@ def test_movement_speed_of_a_rigid_translation_is_its_speed_along_the_direction(
     assert float(task.reward(frame(3, REST + 3 * DT * v, np.tile(v, (len(REST), 1))))) == pytest.approx(0.3)
     task, _ = started(MovementSpeed([1.0, 0.0, 1.0]))
     assert float(task.reward(frame(1, REST, np.tile(v, (len(REST), 1))))) == pytest.approx(0.5 / np.sqrt(2))
+
+
+def test_movement_speed_is_the_distance_covered_over_the_step_not_the_velocity_at_its_end():
+    """A body oscillating in phase with the control steps, at rest on average, sampled at its fast
+    instants: com_v says 0.3 every step, the distance covered says 0."""
+    task, com = started(MovementSpeed([1.0, 0.0, 0.0]))
+    x, v = torch.as_tensor(REST), torch.as_tensor(np.tile([0.3, 0.0, 0.0], (len(REST), 1)))
+    w = MASS / MASS.sum()
+    still = RobotFrame(7, 7 * DT, w @ x, w @ v, MASS, x, v, None, com_x_before=w @ x)
+    assert float(task.reward(still)) == 0.0
+    with pytest.raises(ValueError, match="com_x_before"):
+        task.reward(RobotFrame(7, 7 * DT, w @ x, w @ v))
 
 
 @pytest.mark.parametrize("omega", [1.5, -0.7])
