@@ -1,13 +1,13 @@
 """The surface contact (`terrain.contact: surface`): the terrain's exact surface as a constraint on
 the velocity of the particles touching it, solved on the grid after its update.
 
-    _terrain_contact (before p2g) -> per particle: the surface's normal n at its position, the
-        normal velocity it may have, a = -phi / dt above the surface (reach it within the substep,
-        not pass it) or PUSH_OUT (-phi) / dt below it, and whether it takes part (it would end the
-        substep within half its own spacing of the surface)
-    p2g -> scatters the mass taking part, so a node knows its share in contact s = M_c / M
-    _contact_impulse (after the grid update) -> per particle taking part, from the grid's velocity
-        at it, v = sum w v_i: the normal impulse j_n = max(0, m* (a - v . n)) and Coulomb friction
+    p2g -> per particle, whether it takes part (it would end the substep within half its own
+        spacing of the surface); scatters the mass taking part, so a node knows its share in
+        contact s = M_c / M
+    _contact_impulse (after the grid update) -> per particle taking part: the surface's normal n
+        at it, the normal velocity it may have, a = -phi / dt above the surface (reach it within
+        the substep, not pass it) or PUSH_OUT (-phi) / dt below it, and from the grid's velocity at
+        it, v = sum w v_i, the normal impulse j_n = max(0, m* (a - v . n)) and Coulomb friction
         j_t = min(m* |v_t|, mu j_n) against its sliding v_t, with m* = m / sum w s_i
     _contact_scatter -> adds each impulse to its nodes' velocities, w j / M_i
 
@@ -16,8 +16,8 @@ Why this form: the constraint is on the particle (where the surface is), its unk
 j sum w^2 / M_i, and its neighbours' through the nodes they share; m* splits each node's mass
 among the particles in contact there (in proportion to their weights), so a layer of particles
 that all need the same change gets it in one pass, on the mass that carries them and no more
-(one Jacobi pass of a mass-split solve: more passes changed a gait's distance by under 10% and
-the incline's answers not at all). What this fixes, measured in docs/contact.md section 15:
+(one Jacobi pass of a mass-split solve: more passes moved a gait's distance by under 10% and a
+block resting on an incline by under 1%). What this fixes, measured in docs/contact.md section 15:
 - where the surface falls within a cell no longer moves the grip (the node contact holds whole
   layers of nodes, so it did, by 14 to 31% at every dx: section 13);
 - the answer converges in time: an earlier surface contact (section 14) took part of the normal
