@@ -91,7 +91,7 @@ class MovementSpeed(Task):
     def reward(self, frame: RobotFrame) -> torch.Tensor:
         if frame.com_x_before is None:
             raise ValueError("movement_speed needs the frame's com_x_before (the centre of mass a step earlier)")
-        moved = (frame.com_x - torch.as_tensor(frame.com_x_before, dtype=frame.com_x.dtype))
+        moved = frame.com_x - torch.as_tensor(frame.com_x_before, dtype=frame.com_x.dtype)
         return moved @ torch.as_tensor(self.direction, dtype=frame.com_x.dtype) / self.context.control_dt
 
     def info(self, step: int) -> np.ndarray:
