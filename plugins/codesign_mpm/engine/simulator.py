@@ -6,13 +6,15 @@ One substep (`Simulator._substep`; the kernels live in the modules named):
     stress   -> F <- (I + dt C) F; each material's Kirchhoff stress or return mapping, plus the
                 muscle [constitutive, materials/]: in kernels of their own ahead of p2g for scenes
                 with non-elastic materials and differentiable layouts, else inside p2g
-    contact  -> (terrain.contact: surface) each particle's impulse at the terrain's exact surface [contact]
-    p2g      -> scatter m v and the MLS force/affine term (and the contact's impulse) to 27 nodes [transfer]
+    p2g      -> scatter m v and the MLS force/affine term (and the mass at the terrain's surface) to 27
+                nodes [transfer]
     grid_op  -> v = p / m + dt g; terrain (height-map SDF, Coulomb friction); domain walls [grid]
+    contact  -> (terrain.contact: surface) the impulses of the particles at the terrain's exact
+                surface, from the updated grid and added to it [contact]
     g2p      -> gather v and C; x <- x + dt v (with `scene.flip`, a FLIP share) [transfer]
 
 and its reverse (`Simulator._substep_grad`): the grid kept from the segment's recompute, then
-g2p's, grid_op's, p2g's, the contact's and the stress's adjoints. `rollout` stores checkpoints,
+g2p's, the contact's, grid_op's, p2g's and the stress's adjoints. `rollout` stores checkpoints,
 `backward` recomputes each segment from its checkpoint and runs the substeps' reverses.
 """
 # (no `from __future__ import annotations`: Taichi reads kernel annotations at runtime)

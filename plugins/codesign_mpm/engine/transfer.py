@@ -153,7 +153,6 @@ class _Transfers:
         mass = self.rho[p] * vol
         affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau + mass * self.C[s, p]
         inertia = mass * self.C[s, p]
-        own = mass * self.v[s, p]
         in_contact = 0.0  # the mass taking part in the surface contact (contact.py)
         if ti.static(self.surface_contact):
             taking_part = self._takes_part(p, s)
@@ -163,7 +162,7 @@ class _Transfers:
             offset = ti.Vector([i, j, k])
             dpos = (ti.cast(offset, float) - fx) * dx
             weight = w[i][0] * w[j][1] * w[k][2]
-            momentum = weight * (own + affine @ dpos)
+            momentum = weight * (mass * self.v[s, p] + affine @ dpos)
             I = node + offset
             before = ti.Vector.zero(float, 3)
             if ti.static(self.has_flip):
