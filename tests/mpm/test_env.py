@@ -157,6 +157,31 @@ def test_a_robot_near_the_wall_in_water_is_warned_about():
         build("ground", 0.25)
 
 
+def test_no_shipped_study_puts_a_robot_in_water_near_a_wall():
+    """Table 1's ocean cells were once measured with the animals 0.04 m from the wall band, a push
+    off the wall ranked as swimming (docs/studies.md); every arm of every shipped study, at every
+    scale, keeps its robot clear."""
+    import yaml
+
+    from codesign.recipe import RECIPES_DIR, resolve_recipe
+    from codesign.study import arm_recipe, load_study
+    from codesign_mpm.env import _warn_wall_push
+
+    checked = 0
+    for path in sorted((RECIPES_DIR / "studies").glob("*.yaml")):
+        for scale in ["cpu", *(yaml.safe_load(path.read_text())["study"].get("scales") or {})]:
+            study = load_study(str(path), scale)
+            for arm in study.arms:
+                section = resolve_recipe(arm_recipe(study, arm), default_name=arm.slug).sections["environment"]
+                preset = PRESETS.get(section.name)
+                if preset is not None and section.config.resolved_cover(preset).kind == "water":
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("error")
+                        _warn_wall_push(section.config, preset)
+                    checked += 1
+    assert checked > 0  # the ocean arms were found
+
+
 @pytest.mark.slow
 def test_quickstart_recipe_runs_through_the_cli(tmp_path, capsys):
     """The README's main command, shortened: a co-design run that prints its progress and run dir."""
