@@ -140,13 +140,17 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
     @app.command("eval")
     def evaluate(
         run_dir: Path = typer.Argument(..., help="A run directory with a best/ design and controller."),
+        overrides: Optional[list[str]] = typer.Argument(
+            None, help="key=value changes to the run's recipe for the replay, e.g. environment.cfl=0.1 "
+                       "(does the return hold at a quarter of the step?)."),
         episodes: int = typer.Option(1, "--episodes", min=1, help="Episodes to replay."),
     ) -> None:
         """Replay a run's best design and controller and print the return of each episode, with the
         body's integrity where the environment measures it (torn-off mass, thinnest part)."""
         from codesign import runner
+        from codesign.recipe import parse_overrides
 
-        records = runner.replay_best(run_dir, episodes)
+        records = runner.replay_best(run_dir, episodes, parse_overrides(overrides) if overrides else None)
         for i, record in enumerate(records):
             typer.echo(episode_line(i, record.episode_return, record.metrics))
         returns = [record.episode_return for record in records]

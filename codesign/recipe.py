@@ -133,7 +133,7 @@ def resolve_recipe(
         from codesign.plugins import get_registry
 
         registry = get_registry()
-    override_data = _parse_overrides(overrides)
+    override_data = parse_overrides(overrides)
     merged = merge_recipes({"name": default_name, **data}, override_data)
     try:
         resolved = OmegaConf.to_container(OmegaConf.create(merged), resolve=True)
@@ -258,7 +258,8 @@ def _section(kind: str, raw: Any, registry: Registry, problems: list[Problem]) -
     return None if config is None else Section(name, config)
 
 
-def _parse_overrides(overrides: Iterable[str]) -> dict:
+def parse_overrides(overrides: Iterable[str]) -> dict:
+    """key=value strings (dotted keys) as the nested dict they set; a malformed one is a RecipeError."""
     for item in overrides:
         if "=" not in item or item.startswith("="):
             raise RecipeError(f"override '{item}': expected key=value (e.g. seed=3 or controller.bound=0.2)")

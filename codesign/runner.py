@@ -247,18 +247,24 @@ def best_parts(run_dir: str | Path, overrides: dict | None = None
         parts.representation.setup(env.design_space, rng)
         parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
         design = load_design(Path(run_dir))
+        if len(design.occupancy) != len(env.design_space.points):
+            raise CodesignError(f"{run_dir}: its best design has {len(design.occupancy)} particles, the environment "
+                                f"{'with ' + str(overrides) + ' ' if overrides else ''}samples "
+                                f"{len(env.design_space.points)}: a replay keeps the run's design, so change "
+                                "settings that keep its sampling (e.g. environment.cfl, not environment.dx)")
         load_controller(Path(run_dir), parts.controller)
         yield parts, design, rng
     finally:
         parts.environment.close()
 
 
-def replay_best(run_dir: str | Path, episodes: int = 1) -> list[EpisodeRecord]:
-    """Replay a run's best design and controller for `episodes` episodes; their records (return,
-    trajectory and the environment's episode metrics, e.g. an MPM body's torn_fraction)."""
+def replay_best(run_dir: str | Path, episodes: int = 1, overrides: dict | None = None) -> list[EpisodeRecord]:
+    """Replay a run's best design and controller for `episodes` episodes (with `overrides` merged
+    into its config, as `best_parts` takes them); their records (return, trajectory and the
+    environment's episode metrics, e.g. an MPM body's torn_fraction)."""
     from codesign.artifacts import play
 
-    with best_parts(run_dir) as (parts, design, rng):
+    with best_parts(run_dir, overrides) as (parts, design, rng):
         return [play(parts.environment, design, parts.controller, seed=int(rng.integers(2**31)))
                 for _ in range(episodes)]
 

@@ -11,16 +11,15 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from codesign.artifacts import play
-from codesign.runner import best_parts, load_run_data
+from codesign.runner import load_run_data, replay_best
 
 
 def replay(run_dir: Path, cfl_factor: float = 1.0):
-    """The best design and controller of `run_dir` for one episode, with cfl x `cfl_factor`."""
+    """The best design and controller of `run_dir` for one episode, with cfl x `cfl_factor` (what
+    `codesign eval RUN_DIR environment.cfl=...` prints)."""
     _, recipe = load_run_data(run_dir)
     cfl = recipe.sections["environment"].config.cfl * cfl_factor
-    with best_parts(run_dir, {"environment": {"cfl": cfl}}) as (parts, design, rng):
-        return play(parts.environment, design, parts.controller, seed=int(rng.integers(2**31)))
+    return replay_best(run_dir, 1, {"environment": {"cfl": cfl}})[0]
 
 
 def main(run_dirs: list[str]) -> None:

@@ -138,6 +138,25 @@ def test_eval_prints_the_replayed_bodys_integrity(run_dir, cli):
     assert float(line.split("thinnest part ")[1].split()[0]) >= 2
 
 
+def test_eval_replays_with_changed_settings_and_names_a_bad_key(run_dir, cli):
+    """`codesign eval RUN environment.cfl=...` replays the best episode at another time step (the
+    check of docs/integrity.md): its return is the API's replay with that change, not the run's own;
+    a key the recipe does not have is named, and so is a change that would resample the design."""
+    def replayed(*changes: str) -> float:
+        code, out, err = cli("eval", str(run_dir), *changes)
+        assert code == 0, err
+        return float(next(line for line in out.splitlines() if line.startswith("episode 0: return ")).split()[3].rstrip(","))
+
+    cfl = runner.load_run_data(run_dir)[1].sections["environment"].config.cfl / 4
+    quarter = runner.replay_best(run_dir, 1, {"environment": {"cfl": cfl}})[0].episode_return
+    assert replayed(f"environment.cfl={cfl}") == pytest.approx(quarter, rel=1e-5)
+    assert replayed() != pytest.approx(quarter, rel=1e-5)
+    code, _, err = cli("eval", str(run_dir), "environment.cfll=0.1")
+    assert code != 0 and "environment.cfll" in err
+    code, _, err = cli("eval", str(run_dir), "environment.dx=0.02")  # would resample the design
+    assert code != 0 and "not environment.dx" in err
+
+
 def test_an_export_renders_to_gif_in_a_process_without_display(tmp_path):
     """`simulate --export` keeps what rendering needs; the render itself needs no Taichi or display."""
     scene = Scene(size=[0.6, 0.45, 0.45], dx=1 / 24, terrain=TerrainSpec(kind="flat", height=0.13), bodies=[
