@@ -26,6 +26,8 @@ from codesign.errors import CodesignError, DesignError
 from codesign.interfaces import Controller, DesignFields, Environment
 
 BEST = "best"
+BEST_INFO = Path(BEST) / "info.json"
+"""The best episode's iteration, return and figures, in a run directory."""
 DESIGN_FIELDS = ("occupancy", "stiffness", "muscle", "fiber")
 KEEP_THRESHOLD = 0.5
 
@@ -165,7 +167,7 @@ def save_best(run_dir: Path, design: DesignFields, points: np.ndarray, controlle
     if record is not None:
         np.savez_compressed(best / "trajectory.npz", com=record.com, actions=record.actions,
                             episode_return=record.episode_return)
-    (best / "info.json").write_text(json.dumps(info, indent=2, default=float) + "\n", encoding="utf-8")
+    (Path(run_dir) / BEST_INFO).write_text(json.dumps(info, indent=2, default=float) + "\n", encoding="utf-8")
 
 
 PALETTE = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],

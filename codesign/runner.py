@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from omegaconf import OmegaConf
 
+from codesign.artifacts import BEST_INFO
 from codesign.errors import CodesignError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
 from codesign.plots import CURVE_FILE, learning_curve
@@ -178,7 +179,9 @@ def _execute(
         raise
     finally:
         maximize = parts.optimizer.maximize if parts else {}
-        summary = _summary(recipe, rows, maximize, status, error, wall_time())
+        info = run_dir / BEST_INFO
+        best_episode = json.loads(info.read_text(encoding="utf-8")) if info.is_file() else {}
+        summary = _summary(recipe, rows, maximize, status, error, wall_time(), best_episode)
         (run_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
         curve = learning_curve(rows, run_dir / CURVE_FILE, recipe.name) if rows else None
         if tracker is not None:
@@ -291,14 +294,11 @@ def _make_tracker(recipe: ResolvedRecipe, data: dict, run_dir: Path) -> Tracker:
     return MultiTracker(trackers)
 
 
-def _summary(
-    recipe: ResolvedRecipe,
-    rows: list[dict],
-    maximize: Mapping[str, bool],
-    status: str,
-    error: str | None,
-    wall_time: float,
-) -> dict[str, Any]:
+def best_metrics(rows: list[dict], maximize: Mapping[str, bool], best_episode: Mapping[str, Any]) -> dict[str, float]:
+    """summary.json's `best`: each metric's best over the iterations (the highest, or the lowest
+    where the optimizer says so, as for a loss), except the figures of the best episode itself
+    (`best/info.json`: e.g. the body's torn-off mass), which are that episode's, not the extreme of
+    every episode's."""
     best: dict[str, float] = {}
     for row in rows:
         for key, value in row.items():
@@ -308,13 +308,27 @@ def _summary(
                 continue
             better = max if maximize.get(key, True) else min
             best[key] = better(best[key], value) if key in best else value
+    best.update({key: value for key, value in best_episode.items()
+                 if key in best and key not in ("iteration", "episode_return")})
+    return best
+
+
+def _summary(
+    recipe: ResolvedRecipe,
+    rows: list[dict],
+    maximize: Mapping[str, bool],
+    status: str,
+    error: str | None,
+    wall_time: float,
+    best_episode: Mapping[str, Any],
+) -> dict[str, Any]:
     summary: dict[str, Any] = {
         "status": status,
         "recipe": recipe.name,
         "seed": recipe.seed,
         "iterations_completed": len(rows),
         "final": {k: v for k, v in rows[-1].items() if k not in _RUNNER_KEYS} if rows else {},
-        "best": best,
+        "best": best_metrics(rows, maximize, best_episode),
         "wall_time": wall_time,
         "versions": _versions(),
     }

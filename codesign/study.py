@@ -27,11 +27,11 @@ from typing import Any, Callable, Mapping
 from omegaconf import OmegaConf
 from scipy.stats import kendalltau
 
+from codesign.artifacts import BEST_INFO
 from codesign.errors import CodesignError, RecipeError
 from codesign.recipe import RECIPES_DIR, deep_merge, compose, find_recipe, merge_recipes, resolve_recipe
 
 STUDIES_DIR = "studies"  # under recipes/
-BEST_INFO = Path("best") / "info.json"
 DOCS_PAGE = Path("docs") / "studies.md"
 DOCS_IMAGES = Path("docs") / "images" / "studies"
 SCALE_DEFAULT = "cpu"

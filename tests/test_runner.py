@@ -20,6 +20,15 @@ def read_summary(run_dir) -> dict:
     return json.loads((run_dir / "summary.json").read_text())
 
 
+def test_best_metrics_take_the_best_episodes_own_figures_not_every_episodes_extreme():
+    """summary.json's best: the highest return, the lowest loss, and the body figures of the best
+    episode: a later episode that tore must not make the best one look torn."""
+    rows = [{"loss": -1.0, "episode_return": 1.0, "torn_fraction": 0.0, "iteration": 0},
+            {"loss": 5.0, "episode_return": -5.0, "torn_fraction": 0.4, "iteration": 1}]
+    best = runner.best_metrics(rows, {"loss": False}, {"iteration": 0, "episode_return": 1.0, "torn_fraction": 0.0})
+    assert best == {"loss": -1.0, "episode_return": 1.0, "torn_fraction": 0.0}
+
+
 def test_run_writes_config_metrics_summary_and_checkpoint(tmp_path, toy_recipe):
     run_dir = runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "run", progress=False)
 
