@@ -64,6 +64,7 @@ class Study:
     prepare: Arm | None = None  # a run made first (first seed), whose best controller every arm starts from
     analysis: str | None = None  # "module:function" measuring one robot instead of arms (codesign_mpm.analyses)
     parameters: dict = field(default_factory=dict)  # the analysis's own settings
+    still: bool = True  # also play each arm's starting design without any action (the return of doing nothing)
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,7 @@ class Row:
     per_step: tuple[float, ...]  # each seed's best episode: return / horizon
     torn: tuple[float, ...]  # each seed's best episode: mass fraction torn off
     wall_time: tuple[float, ...]
+    still: float | None = None  # the starting design with no action (first seed): return / horizon
 
     @property
     def mean(self) -> float:
@@ -194,10 +196,11 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
     if len({a.slug for a in arms}) != len(arms):
         raise RecipeError(f"invalid {where}: study.arms: two labels give the same directory name")
     return Study(path.stem, spec.get("title", path.stem), spec.get("paper", ""), spec.get("differs", ""),
-                 seeds, tuple(arms), recipe, scale, prepare, analysis, parameters)
+                 seeds, tuple(arms), recipe, scale, prepare, analysis, parameters, bool(spec.get("still", True)))
 
 
 PREPARE_DIR = "prepare"
+STILL_DIR = "still"
 
 
 def prepare_recipe(study: Study) -> dict:
@@ -221,6 +224,19 @@ def arm_recipe(study: Study, arm: Arm, root: Path = Path(STUDIES_DIR)) -> dict:
     data["name"] = f"{study.name}-{arm.slug}"
     data["sweep"] = {"method": "grid", "metric": {"name": "best.episode_return", "goal": "maximize"},
                      "parameters": {"seed": {"values": list(study.seeds)}}}
+    return data
+
+
+def still_recipe(study: Study, arm: Arm) -> dict:
+    """One episode of the arm's starting design (first seed) with no action at all: what a body
+    does by itself (sagging, tipping, drifting in settling water) scores this much, and a gait's
+    return is worth what it adds to it."""
+    data = arm_recipe(study, arm)
+    for key in ("sweep", "init_controller"):
+        data.pop(key, None)
+    data.update(name=f"{study.name}-{arm.slug}-{STILL_DIR}", seed=study.seeds[0],
+                optimizer={"name": "evaluate", "episodes": 1},
+                controller={"name": "sine", "init_std": 0.0})  # zero weights and biases: every action is 0
     return data
 
 
@@ -257,6 +273,12 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
             print(f"[{study.name}] arm {i + 1}/{len(study.arms)}: {arm.label}"
                   + (" (continuing)" if resume else ""), file=sys.stderr, flush=True)
         sweeps.run_sweep(recipe, sweep_dir=arm_dir, resume=resume, progress=progress)
+        still = arm_dir / STILL_DIR
+        if study.still and not sweeps.finished(still):
+            if (still / runner.CONFIG_FILE).is_file():
+                runner.resume(still, progress=progress)
+            else:
+                runner.run(resolve_recipe(still_recipe(study, arm)), run_dir=still, progress=progress)
     write_results(study, root)
     return root
 
@@ -279,7 +301,12 @@ def collect(study: Study, root: Path) -> list[Row]:
             per_step.append(summary["best"]["episode_return"] / horizon)
             torn.append(info.get("torn_fraction", float("nan")))  # the best episode's (environments with bodies)
             wall.append(summary["wall_time"])
-        rows.append(Row(arm, tuple(per_step), tuple(torn), tuple(wall)))
+        still_dir = root / arm.slug / STILL_DIR
+        still = None
+        if sweeps.finished(still_dir):
+            horizon = OmegaConf.load(still_dir / "config.yaml").environment.horizon
+            still = json.loads((still_dir / sweeps.SUMMARY_FILE).read_text(encoding="utf-8"))["best"]["episode_return"] / horizon
+        rows.append(Row(arm, tuple(per_step), tuple(torn), tuple(wall), still))
     if not rows:
         raise CodesignError(f"study {study.name}: no arm has a finished run in {root}; "
                             f"run `codesign study {study.name}` to (re)start it")
@@ -325,10 +352,11 @@ def _percent(v: float) -> str:
 
 
 def table_markdown(rows: list[Row]) -> str:
-    lines = ["| arm | ours: per-step return, mean | std over seeds | seeds | paper | torn-off mass (max) | wall s (mean) |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| arm | ours: per-step return, mean | std over seeds | seeds | no action | paper | torn-off mass (max) "
+             "| wall s (mean) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
-        lines.append(f"| {r.arm.label} | {_fmt(r.mean)} | {_fmt(r.std)} | {len(r.per_step)} | "
+        lines.append(f"| {r.arm.label} | {_fmt(r.mean)} | {_fmt(r.std)} | {len(r.per_step)} | {_fmt(r.still)} | "
                      f"{_fmt(r.arm.paper) if r.arm.paper is not None else '-'} | {_percent(max(r.torn))} | "
                      f"{sum(r.wall_time) / len(r.wall_time):.0f} |")
     return "\n".join(lines)
@@ -395,10 +423,10 @@ def write_results(study: Study, root: Path) -> list[Row]:
     rows = collect(study, root)
     with open(root / "table.csv", "w", newline="", encoding="utf-8") as f:
         out = csv.writer(f)
-        out.writerow(["arm", "mean", "std", "seeds", "paper", "per_step", "torn", "wall_time"])
+        out.writerow(["arm", "mean", "std", "seeds", "paper", "per_step", "torn", "wall_time", "still"])
         for r in rows:
             out.writerow([r.arm.label, r.mean, r.std, len(r.per_step), r.arm.paper, list(r.per_step), list(r.torn),
-                          list(r.wall_time)])
+                          list(r.wall_time), r.still])
     (root / "table.md").write_text(table_markdown(rows) + "\n", encoding="utf-8")
     plot(study, rows, root / f"{study.name}.png")
     (root / "section.md").write_text(section(study, rows), encoding="utf-8")

@@ -4,6 +4,7 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -45,6 +46,31 @@ def test_each_arm_runs_once_per_seed_and_the_table_holds_each_best_return_per_st
         assert float(rows[label]["mean"]) == pytest.approx(sum(expected) / 2)
     assert (root / "toy_bound.png").stat().st_size > 1000
     assert "Kendall's tau" in (root / "section.md").read_text()
+
+
+def test_each_arm_also_plays_its_starting_design_without_any_action(tmp_path, toy_study, cli):
+    """The table's "no action" column: what the arm's body scores by itself (first seed, every action
+    0), from a run of its own beside the arm's seeds; `study.still: false` leaves it out."""
+    code, out, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
+    assert code == 0, err
+    root = Path(out.strip())
+    rows = {r["arm"]: r for r in csv.DictReader((root / "table.csv").open())}
+    for arm, label in (("loose_bound", "Loose bound"), ("tight_bound", "Tight bound")):
+        still = root / arm / "still"
+        config = yaml.safe_load((still / "config.yaml").read_text())
+        assert config["seed"] == 0 and config["optimizer"]["name"] == "evaluate"
+        assert not np.load(still / "trajectory-0.npz")["actions"].any()
+        episode_return = json.loads((still / "summary.json").read_text())["best"]["episode_return"]
+        assert float(rows[label]["still"]) == pytest.approx(episode_return / config["environment"]["horizon"])
+    assert "| no action |" in (root / "table.md").read_text()
+
+    spec = yaml.safe_load(toy_study.read_text())
+    spec["study"]["still"] = False
+    quiet = tmp_path / "quiet.yaml"
+    quiet.write_text(yaml.safe_dump(spec))
+    code, out, err = cli("study", str(quiet), "--dir", str(tmp_path / "q"), "--no-progress")
+    assert code == 0, err
+    assert not list(Path(out.strip()).glob("*/still"))
 
 
 def test_a_rerun_continues_the_study_and_reruns_no_finished_run(tmp_path, toy_study, cli):
