@@ -188,6 +188,12 @@ def write_ply(path: Path, points: np.ndarray, occupancy: np.ndarray, muscle: np.
     trimesh.PointCloud(points[keep], colors=colors).export(path)
 
 
+def load_best_info(run_dir: Path) -> dict:
+    """The best episode's iteration, return and figures ({} while the run has saved no best)."""
+    path = Path(run_dir) / BEST_INFO
+    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
+
+
 def load_design(run_dir: Path) -> DesignFields:
     path = Path(run_dir) / BEST / "design.npz"
     if not path.is_file():

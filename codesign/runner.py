@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from omegaconf import OmegaConf
 
-from codesign.artifacts import BEST_INFO
+from codesign.artifacts import load_best_info
 from codesign.errors import CodesignError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
 from codesign.plots import CURVE_FILE, learning_curve
@@ -179,9 +179,7 @@ def _execute(
         raise
     finally:
         maximize = parts.optimizer.maximize if parts else {}
-        info = run_dir / BEST_INFO
-        best_episode = json.loads(info.read_text(encoding="utf-8")) if info.is_file() else {}
-        summary = _summary(recipe, rows, maximize, status, error, wall_time(), best_episode)
+        summary = _summary(recipe, rows, maximize, status, error, wall_time(), load_best_info(run_dir))
         (run_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
         curve = learning_curve(rows, run_dir / CURVE_FILE, recipe.name) if rows else None
         if tracker is not None:

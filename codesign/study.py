@@ -27,7 +27,7 @@ from typing import Any, Callable, Mapping
 from omegaconf import OmegaConf
 from scipy.stats import kendalltau
 
-from codesign.artifacts import BEST_INFO
+from codesign.artifacts import load_best_info
 from codesign.errors import CodesignError, RecipeError
 from codesign.recipe import RECIPES_DIR, deep_merge, compose, find_recipe, merge_recipes, resolve_recipe
 
@@ -283,6 +283,19 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
     return root
 
 
+def _summary_of(run: Path) -> dict:
+    from codesign.runner import SUMMARY_FILE
+
+    return json.loads((run / SUMMARY_FILE).read_text(encoding="utf-8"))
+
+
+def _per_step_return(run: Path) -> float:
+    """A finished run's best return in the paper's unit: divided by its horizon."""
+    from codesign.runner import CONFIG_FILE
+
+    return _summary_of(run)["best"]["episode_return"] / OmegaConf.load(run / CONFIG_FILE).environment.horizon
+
+
 def collect(study: Study, root: Path) -> list[Row]:
     """Each arm's per-step return, torn-off mass and wall time over the seeds of its finished runs
     (arms with none yet are left out: a study under way can be reported)."""
@@ -295,17 +308,11 @@ def collect(study: Study, root: Path) -> list[Row]:
             continue
         per_step, torn, wall = [], [], []
         for run in runs:
-            horizon = OmegaConf.load(run / "config.yaml").environment.horizon
-            summary = json.loads((run / sweeps.SUMMARY_FILE).read_text(encoding="utf-8"))
-            info = json.loads((run / BEST_INFO).read_text(encoding="utf-8")) if (run / BEST_INFO).is_file() else {}
-            per_step.append(summary["best"]["episode_return"] / horizon)
-            torn.append(info.get("torn_fraction", float("nan")))  # the best episode's (environments with bodies)
-            wall.append(summary["wall_time"])
+            per_step.append(_per_step_return(run))
+            torn.append(load_best_info(run).get("torn_fraction", float("nan")))  # environments with bodies
+            wall.append(_summary_of(run)["wall_time"])
         still_dir = root / arm.slug / STILL_DIR
-        still = None
-        if sweeps.finished(still_dir):
-            horizon = OmegaConf.load(still_dir / "config.yaml").environment.horizon
-            still = json.loads((still_dir / sweeps.SUMMARY_FILE).read_text(encoding="utf-8"))["best"]["episode_return"] / horizon
+        still = _per_step_return(still_dir) if sweeps.finished(still_dir) else None
         rows.append(Row(arm, tuple(per_step), tuple(torn), tuple(wall), still))
     if not rows:
         raise CodesignError(f"study {study.name}: no arm has a finished run in {root}; "
