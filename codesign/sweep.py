@@ -7,7 +7,8 @@ One Optuna trial is one configuration; its value is the metric's mean over its s
 
 A sweep directory holds:
 
-- ``sweep.yaml``: the resolved recipe, sweep section included (a resumed sweep must match it);
+- ``sweep.yaml``: the resolved recipe, sweep section included (a resumed sweep must match it, read
+  with today's defaults for fields added since);
 - ``optuna.journal``: Optuna's study (a JournalFileBackend: a plain file, no database server);
 - ``t<trial>-seed<seed>/``: one ordinary run directory per configuration and seed;
 - ``summary.csv``, ``summary.md``: the metric's mean, std and n over seeds per configuration;
@@ -350,7 +351,7 @@ def _sweep_dir(recipe: ResolvedRecipe, sweep_dir: str | Path | None, resume: boo
         directory = Path(sweep_dir)
         if not (directory / SWEEP_FILE).is_file():
             raise CodesignError(f"{directory} is not a sweep directory (no {SWEEP_FILE})")
-        if (directory / SWEEP_FILE).read_text(encoding="utf-8") != stored:
+        if not _same_recipe((directory / SWEEP_FILE).read_text(encoding="utf-8"), stored):
             raise CodesignError(f"the recipe differs from the one the sweep in {directory} ran ({SWEEP_FILE}); "
                                 f"resume with the same recipe and overrides (only sweep.backend may change)")
         return directory
@@ -361,6 +362,19 @@ def _sweep_dir(recipe: ResolvedRecipe, sweep_dir: str | Path | None, resume: boo
     directory.mkdir(parents=True, exist_ok=True)
     (directory / SWEEP_FILE).write_text(stored, encoding="utf-8")
     return directory
+
+
+def _same_recipe(ran: str, stored: str) -> bool:
+    """Whether the recipe a sweep ran (its sweep.yaml) is `stored` (this one, as it would be stored).
+    The old file is read again with today's schemas if the text differs: a field added since then
+    takes its default, which keeps the behaviour from before it, so the sweep still resumes."""
+    if ran == stored:
+        return True
+    try:
+        again = resolve_recipe(OmegaConf.to_container(OmegaConf.create(ran)))
+    except (RecipeError, ValueError):
+        return False
+    return OmegaConf.to_yaml(OmegaConf.create(_comparable(again.data))) == stored
 
 
 def _comparable(data: dict) -> dict:

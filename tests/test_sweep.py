@@ -137,6 +137,14 @@ def test_an_interrupted_sweep_resumes_skipping_finished_runs_and_continuing_the_
     with pytest.raises(CodesignError, match="the recipe differs"):
         run_sweep(changed, sweep_dir=directory, resume=True, progress=False)
 
+    # a sweep run before a field existed (its sweep.yaml lacks it) resumes if the default is what it ran
+    ran = yaml.safe_load((directory / "sweep.yaml").read_text())
+    del ran["environment"]["n_points"]
+    (directory / "sweep.yaml").write_text(yaml.safe_dump({**ran, "environment": {**ran["environment"], "horizon": 6}}))
+    with pytest.raises(CodesignError, match="the recipe differs"):
+        run_sweep(recipe, sweep_dir=directory, resume=True, progress=False)
+    (directory / "sweep.yaml").write_text(yaml.safe_dump(ran))
+
     calls.clear()
     run_sweep(recipe, sweep_dir=directory, resume=True, progress=False)
     assert calls[0] == half.name and len(calls) == 3  # the half-finished run, then the last configuration
