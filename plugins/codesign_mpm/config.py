@@ -122,6 +122,10 @@ class RobotConfig:
     rest_on: str = field(default="terrain", metadata={
         "choices": ["terrain", "cover"], "help": "terrain: stand on the terrain inside the cover (the paper); "
                                                 "cover: start on top of the cover layer"})
+    settled: bool = field(default=False, metadata={
+        "help": "start at rest under its own weight (found by dynamic relaxation, codesign_mpm.settle.relax) "
+                "instead of stress-free, so a no-action episode stays where it is; a fixed body only (a design "
+                "that changes its shape or stiffness is an error)"})
 
 
 @dataclass

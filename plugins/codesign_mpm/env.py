@@ -32,7 +32,7 @@ from codesign_mpm.materials import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio,
 from codesign_mpm.observations import Observer
 from codesign_mpm.sampling import Particles, build_particles
 from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
-from codesign_mpm.settle import settled_state
+from codesign_mpm.settle import REST_SPEED, Relaxed, relax, settled_state
 from codesign_mpm.tasks import TASKS, RobotFrame, Task, TaskContext
 from codesign_mpm.terrain import height_map
 
@@ -240,6 +240,7 @@ class LocomotionEnv(Environment):
         self.particles: Particles = _concat(self.base_particles, self.cover_particles)
         cover = config.resolved_cover(preset)
         self._settled = cover.settled
+        self._relaxed: tuple[tuple, Relaxed] | None = None  # (the body it is for, the relaxed start)
         self._fillable = self._under_cover(cover)
         self.sim: Simulator | None = None
         self._grad_sim: Simulator | None = None
@@ -325,9 +326,10 @@ class LocomotionEnv(Environment):
             self.sim = Simulator(self.scene, particles, capacity=self.capacity)
         else:
             self.sim.reset(particles)
-        self.sim.set_initial_state(**self.initial_state(particles))
+        start = self.initial_state(particles)
+        self.sim.set_initial_state(**start)
         self.t = 0
-        self._episode = self._start_task(particles)
+        self._episode = self._start_task(particles, start["x"])
         self.sim.on_frame = self._episode.watch.see
         return self._observe(self._episode, 0, self.sim.particles_state())[0]
 
@@ -344,9 +346,9 @@ class LocomotionEnv(Environment):
         self._batch.set_initial_state(**{key: np.concatenate([s[key] for s in starts]) for key in starts[0]})
         self.population_t = 0
         self._population = []
-        for member in members:
+        for member, start in zip(members, starts):
             task = make_task(self.config.task)
-            self._population.append(self._start_task(member, task, replace(self.observer, task=task)))
+            self._population.append(self._start_task(member, start["x"], task, replace(self.observer, task=task)))
         self._batch.on_frame = self._see_population
         return [self._observe(episode, 0, state)[0] for episode, state in zip(self._population, self._member_states())]
 
@@ -372,21 +374,45 @@ class LocomotionEnv(Environment):
         return self.base_particles.n + self.cover_particles.n
 
     def initial_state(self, particles: Particles) -> dict[str, np.ndarray]:
-        """The deformation F (N, 3, 3) and plastic volume ratio Jp (N,) a design's particles start from
-        (`Simulator.set_initial_state` keywords): the robot at rest, the cover settled."""
+        """The state a design's particles start from (`Simulator.set_initial_state` keywords x, v, C,
+        F, Jp): the robot stress-free and at rest, the cover loaded by its own weight; with
+        `robot.settled`, the scene relaxed to rest (`settle.relax`, once per environment)."""
         F, jp = np.tile(np.eye(3), (particles.n, 1, 1)), np.ones(particles.n)
         if self._settled and self.cover_particles.n:
             rest = ~particles.robot
             F[rest], jp[rest] = settled_state(self.scene, _subset(particles, rest))
-        return {"F": F, "Jp": jp}
+        start = {"x": particles.x, "v": particles.v, "C": np.zeros((particles.n, 3, 3)), "F": F, "Jp": jp}
+        return self._relaxed_start(particles, start) if self.config.robot.settled else start
 
-    def _start_task(self, particles: Particles, task: Task | None = None, observer: Observer | None = None
-                    ) -> EpisodeState:
-        """Start `task` (default: the environment's own, observed by its observer) for a design's particles."""
+    def _relaxed_start(self, particles: Particles, start: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """`start` relaxed to rest (`settle.relax`), found for the first body and reused: the same
+        body needs no action to settle, whatever its muscles; a body of another shape or stiffness
+        would need its own, which no gradient could reach (the relaxation is forward only)."""
+        body = (particles.n, particles.volume.tobytes(), particles.density.tobytes(), particles.youngs_modulus.tobytes())
+        if self._relaxed is None:
+            sim = Simulator(self.scene, particles, capacity=self.capacity)
+            sim.set_initial_state(**start)
+            relaxed = relax(sim, particles.volume * particles.density)
+            sim.close()
+            if relaxed.speed >= REST_SPEED:
+                warnings.warn(f"environment.robot.settled: the scene is not at rest after {relaxed.frames} frames "
+                              f"(RMS speed {relaxed.speed:.1e} m/s, rest under {REST_SPEED:g}; a body denser than "
+                              f"water sinks); it starts from there", stacklevel=2)
+            self._relaxed = (body, relaxed)
+        elif self._relaxed[0] != body:
+            raise RecipeError("invalid recipe: environment.robot.settled: true starts a fixed body at rest (relaxed "
+                              "once), but this design changes the body's shape, mass or stiffness: set it false to "
+                              "optimise those (a design that moves only the muscles may keep it)")
+        return self._relaxed[1].state
+
+    def _start_task(self, particles: Particles, rest: np.ndarray, task: Task | None = None,
+                    observer: Observer | None = None) -> EpisodeState:
+        """Start `task` (default: the environment's own, observed by its observer) for a design's particles
+        starting at positions `rest` (initial_state's x)."""
         task, observer = task or self.task, observer or self.observer
         robot = particles.robot
         mass = torch.as_tensor(particles.volume[robot] * particles.density[robot])
-        rest = particles.x[robot]
+        rest = rest[robot]
         com = (mass.numpy() @ rest) / mass.sum().item()
         task.start(TaskContext(rest_x=rest, start_com=com, control_dt=self.control_dt, horizon=self.horizon))
         watch = IntegrityWatch(mass.numpy(), self.config.dx, self.config.integrity.tolerance,

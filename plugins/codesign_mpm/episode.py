@@ -76,7 +76,8 @@ def run_episode(env: EpisodeEnvironment, design: DesignFields, controller: Contr
     particles, inputs = design_inputs(env, design)
     volume, stiffness, muscle, fiber = inputs
     sim = env.grad_simulator(particles)
-    watch = env._start_task(particles).watch
+    start = env.initial_state(particles)
+    watch = env._start_task(particles, start["x"]).watch
     n = len(watch.mass)
     sim.on_frame = watch.see
     controller.reset()
@@ -92,10 +93,7 @@ def run_episode(env: EpisodeEnvironment, design: DesignFields, controller: Contr
                                for t in range(1, T + 1)])
         com = com_x.detach().numpy()
     else:
-        start = env.initial_state(particles)
-        state = (torch.as_tensor(particles.x, dtype=DTYPE), torch.as_tensor(particles.v, dtype=DTYPE),
-                 torch.zeros(particles.n, 3, 3, dtype=DTYPE),
-                 torch.as_tensor(start["F"], dtype=DTYPE), torch.as_tensor(start["Jp"], dtype=DTYPE))
+        state = tuple(torch.as_tensor(start[key], dtype=DTYPE) for key in ("x", "v", "C", "F", "Jp"))
         cover_x = None
         before = weights @ state[0][:n]  # the centre of mass a step earlier (differentiable in the design)
         rewards, coms, actions = [], [before.detach().numpy()], []

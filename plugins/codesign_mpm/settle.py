@@ -20,10 +20,19 @@ yield surface:
 
 The vertical strain is found by bisection on each model's vertical Cauchy stress. Gravity must
 point along -y (the terrain's up axis).
+
+A robot's body has no such closed form (its shape, its contact with the terrain, the cover it
+presses into), so `relax` finds its rest by dynamic relaxation instead
+(`environment.robot.settled`): the scene stepped with no action, every velocity zeroed whenever the
+kinetic energy has just passed a peak (kinetic damping), until it is at rest. Started stress-free,
+an animal sags and then rocks on its belly for longer than an episode (the baby seal: its centre of
+mass 5 mm forward in 0.24 s, docs/studies.md), which a task would score as locomotion.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,9 +40,14 @@ from codesign_mpm.materials import ID, MIN_HARDENING, lame
 from codesign_mpm.sampling import Particles
 from codesign_mpm.scene import Scene, SceneError
 
+if TYPE_CHECKING:
+    from codesign_mpm.engine import Simulator
+
 SETTLING = ("water", "sand", "snow", "clay", "mud")
 """Materials that start settled in any body shape (layers of any material do too)."""
 INSIDE = 1.0 - 1e-6  # states put on a yield surface are put this fraction of the way to it
+REST_SPEED = 1e-3  # m/s: the RMS speed of the particles under which a relaxed scene is at rest
+RELAX_FRAMES = 250  # the most frames a relaxation takes (2 s at 8 ms; a body sinking in water never rests)
 
 
 def _bisect(stress, pressure: np.ndarray, lo: float = -3.0) -> np.ndarray:
@@ -120,3 +134,38 @@ def settled_state(scene: Scene, particles: Particles) -> tuple[np.ndarray, np.nd
         pressure = particles.density[sel] * -g[1] * depth
         F[sel], jp[sel] = _settle_model(int(particles.material[sel[0]]), particles, sel, pressure)
     return F, jp
+
+
+@dataclass
+class Relaxed:
+    """What `relax` found."""
+
+    state: dict[str, np.ndarray]
+    """`Simulator.set_initial_state` keywords: x, F, Jp where it ended, v and C zero."""
+    frames: int
+    """Frames it took."""
+    speed: float
+    """The particles' RMS speed at its last frame's end (before the velocities were zeroed)."""
+
+
+def relax(sim: Simulator, mass: np.ndarray, rest_speed: float = REST_SPEED, frames: int = RELAX_FRAMES) -> Relaxed:
+    """Dynamic relaxation with kinetic damping (Cundall's): step `sim` with no action, zero every
+    velocity (and the affine C) after each frame whose kinetic energy is below the frame's before (a
+    peak has passed: the energy is nearest its potential minimum there), and stop after the first
+    frame whose RMS speed is under `rest_speed`, or after `frames`. `mass` (N,) weighs the particles.
+    What is left is a static equilibrium of the scene under gravity on the terrain (forward only: no
+    gradient reaches the start through it)."""
+    before, speed, frame = np.inf, np.inf, 0
+    while frame < frames and speed >= rest_speed:
+        sim.step(None)
+        frame += 1
+        x, v, C, F = sim.particles_state()
+        energy = 0.5 * float(mass @ (v * v).sum(1))
+        speed = math.sqrt(2 * energy / mass.sum())
+        if energy < before or speed < rest_speed:
+            sim.set_initial_state(x=x, v=np.zeros_like(v), C=np.zeros_like(C), F=F, Jp=sim.plastic_volume_ratio())
+            energy = 0.0
+        before = energy
+    x, v, C, F = sim.particles_state()
+    state = {"x": x, "v": np.zeros_like(v), "C": np.zeros_like(C), "F": F, "Jp": sim.plastic_volume_ratio()}
+    return Relaxed(state, frame, speed)

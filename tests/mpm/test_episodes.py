@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from codesign.errors import RecipeError
 from codesign_basics.config import MLPConfig, SineConfig, TrajectoryConfig
 from codesign_basics.mlp import MLPController
 from codesign_basics.sine import SineController
@@ -22,10 +23,11 @@ pytestmark = pytest.mark.slow
 HORIZON = 4
 
 
-def make_env(task: str = "movement_speed") -> LocomotionEnv:
+def make_env(task: str = "movement_speed", settled: bool = False) -> LocomotionEnv:
     config = PRESET_CONFIGS["ground"](dx=1 / 32, horizon=HORIZON, dtype="float64",
                                       terrain=TerrainConfig(height=0.1, friction=0.5),
-                                      robot=RobotConfig(size=[0.16, 0.08, 0.08]), task=TaskConfig(name=task))
+                                      robot=RobotConfig(size=[0.16, 0.08, 0.08], settled=settled),
+                                      task=TaskConfig(name=task))
     return LocomotionEnv(config, PRESETS["ground"])
 
 
@@ -111,6 +113,47 @@ def test_a_task_that_reads_particles_takes_the_per_step_path_with_an_open_loop_c
     finally:
         torch.set_default_dtype(torch.float32)
         env.close()
+
+
+def still_motion(env, rep) -> float:
+    """How far (m) the robot's centre of mass moves over an episode with no action."""
+    with torch.no_grad():
+        env.reset(rep())
+        coms = [env.step(np.zeros(env.action_dim)).info["com"] for _ in range(env.horizon)]
+    return float(np.linalg.norm(np.array(coms) - coms[0], axis=1).max())
+
+
+def test_a_settled_robot_starts_at_rest_and_its_episodes_stay_differentiable(env):
+    settled = make_env(settled=True)
+    torch.set_default_dtype(torch.float64)
+    try:
+        rep, controller = parts(settled, MLPController(MLPConfig(hidden=[16], init_std=1.0)))
+        # stress-free, the box sags onto the ground (its centre of mass falls ~0.3 mm in 4 frames);
+        # relaxed, it is where its weight holds it
+        assert still_motion(settled, rep) < 0.05 * still_motion(env, rep)
+        assert settled._relaxed[1].frames > 1
+        for make in (lambda: SineController(SineConfig(init_std=1.0)), lambda: controller):  # open and closed loop
+            control = make()
+            if control is not controller:
+                control.setup(settled.action_dim, settled.observation_dim, settled.control_dt, np.random.default_rng(2))
+            episode = settled.differentiable_episode(rep(), control)
+            assert float(episode.loss) == pytest.approx(-stepped_return(settled, rep, control), rel=1e-9, abs=1e-12)
+        episode.loss.backward()
+        weight = controller.parameters()[0]
+        values = []
+        for eps in (1e-4, -1e-4):
+            with torch.no_grad():
+                weight[0, 0] += eps
+                values.append(float(settled.differentiable_episode(rep(), controller).loss))
+                weight[0, 0] -= eps
+        assert weight.grad[0, 0].item() == pytest.approx((values[0] - values[1]) / 2e-4, rel=1e-4, abs=1e-10)
+        with torch.no_grad():
+            rep.stiffness[3] += 1.0  # another body: its rest is not the one found
+        with pytest.raises(RecipeError, match="environment.robot.settled"):
+            settled.reset(rep())
+    finally:
+        torch.set_default_dtype(torch.float32)
+        settled.close()
 
 
 @pytest.mark.parametrize("env_id", ["codesign/Ground-MovementSpeed-v0", "codesign/Ocean-WaypointFollowing-v0"])
