@@ -3,7 +3,8 @@ accuracy`'s robot_ground problem on floors of several frictions, at several dx a
 the same muscled box floating free (no gravity, no terrain), whose shape should converge; and
 whether random gaits rank the same at the quality presets (Spearman's rho of their distances);
 the report's reference setting at finer grids (reference); and the terrain's surface moved within
-one cell (offsets). `--contact surface` measures the same with the terrain's surface contact.
+one cell (offsets). `--contact surface` measures the same with the terrain's surface contact; `--start stress-free` with
+the robot starting stress-free (it lands and sags in the first frames) instead of at rest.
 Prints JSON lines (and appends them to --out); docs/contact.md reads them.
 
     python benchmarks/locomotion_convergence.py ground --arch cuda --out records.jsonl
@@ -37,16 +38,21 @@ def fine(n: int) -> Setting:
 
 
 def ground(setting: Setting, friction: float, arch: str, actions=gait, terrain_height: float = 0.13,
-           contact: str = "nodes") -> dict:
+           contact: str = "nodes", settled: bool = True) -> dict:
     """Distance along x after 1 s (and after 0.5 s) of a gait (`actions(frame, k)`), on robot_ground's setup."""
     env = robot_env("ground", setting, FRAMES, friction=friction, arch=arch, terrain_height=terrain_height,
-                    contact=contact)
+                    contact=contact, settled=settled)
+    record = walk(env, actions)
+    env.close()
+    return record
+
+
+def walk(env, actions) -> dict:
+    """One episode of `env` (reset first) driven by `actions(frame, k)`: its distance along x."""
     com0 = env.reset()[:3]
     t0 = time.perf_counter()
     xs = [float(env.step(actions(f, env.action_dim)).info["com"][0] - com0[0]) for f in range(FRAMES)]
-    particles = env.sim.n
-    env.close()
-    return dict(distance=xs[-1], half=xs[FRAMES // 2], particles=particles, wall_s=time.perf_counter() - t0)
+    return dict(distance=xs[-1], half=xs[FRAMES // 2], particles=env.sim.n, wall_s=time.perf_counter() - t0)
 
 
 def floating(dx: float, cfl: float, arch: str) -> dict:
@@ -74,36 +80,40 @@ def random_gait(seed: int):
     return lambda frame, k: 0.3 * np.sin(2 * math.pi * hz * frame * 8e-3 + phases)[:k]
 
 
-def ranking(gaits: int, arch: str, contact: str) -> list[dict]:
+def ranking(gaits: int, arch: str, contact: str, settled: bool) -> list[dict]:
     """Each random gait's distance at the draft, default and paper presets, and Spearman's rho
     between the presets' rankings."""
     from codesign_mpm.quality import QUALITY
 
-    distances = {name: [ground(Setting(dx=QUALITY[name].dx, cfl=QUALITY[name].cfl), 0.5, arch, random_gait(seed),
-                                       contact=contact)["distance"]
-                        for seed in range(gaits)] for name in ("draft", "default", "paper")}
+    distances = {}
+    for name in ("draft", "default", "paper"):
+        env = robot_env("ground", Setting(dx=QUALITY[name].dx, cfl=QUALITY[name].cfl), FRAMES, friction=0.5, arch=arch,
+                        contact=contact, settled=settled)  # one per preset: its rest is found once
+        distances[name] = [walk(env, random_gait(seed))["distance"] for seed in range(gaits)]
+        env.close()
     records = [dict(preset=name, distances=d) for name, d in distances.items()]
     for a, b in (("draft", "paper"), ("default", "paper"), ("draft", "default")):
         records.append(dict(spearman=f"{a}-{b}", rho=float(spearmanr(distances[a], distances[b]).statistic)))
     return records
 
 
-def reference(environment: str, n: int, arch: str, seconds: float, contact: str) -> dict:
+def reference(environment: str, n: int, arch: str, seconds: float, contact: str, settled: bool) -> dict:
     """`codesign bench accuracy`'s robot problem at its reference setting (27 particles per cell,
     CFL 0.2, float64) at dx 1/n: is the report's reference converged (do the two finest agree)?"""
     t0 = time.perf_counter()
-    record = measure_robot(environment, arch, contact)(fine(n), dict(seconds=seconds))
+    record = measure_robot(environment, arch, contact, settled)(fine(n), dict(seconds=seconds))
     return dict(environment=environment, distance=record["value"], particles=record["particles"],
                 substeps_per_frame=record["substeps_per_frame"], process_s=time.perf_counter() - t0)
 
 
-def offsets(n: int, friction: float, fractions: list[float], arch: str, at_reference: bool, contact: str) -> dict:
+def offsets(n: int, friction: float, fractions: list[float], arch: str, at_reference: bool, contact: str,
+            settled: bool) -> dict:
     """The gait's distance with the terrain's surface at (floor(0.13 n) + f) / n for each fraction f
     of a cell: how much where the surface falls between node layers moves it (docs/contact.md
     section 13). `at_reference`: at the accuracy report's reference setting (`fine`)."""
     setting = fine(n) if at_reference else Setting(dx=1 / n)
     distances = [ground(setting, friction, arch, terrain_height=(math.floor(0.13 * n) + f) / n,
-                        contact=contact)["distance"] for f in fractions]
+                        contact=contact, settled=settled)["distance"] for f in fractions]
     mean = float(np.mean(distances))
     return dict(setting=setting.label(), friction=friction, fractions=fractions, distances=distances, mean=mean,
                 half_range_over_mean=(max(distances) - min(distances)) / 2 / abs(mean))
@@ -122,37 +132,41 @@ def main() -> None:
     parser.add_argument("--gaits", type=int, default=5, help="ranking: random gaits to rank")
     parser.add_argument("--arch", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--contact", default="nodes", choices=["nodes", "surface"], help="the terrain's contact")
+    parser.add_argument("--start", default="settled", choices=["settled", "stress-free"],
+                        help="the robot at rest under its weight (as the accuracy report) or stress-free")
     parser.add_argument("--frictions", type=float, nargs="+", default=[0.0, 0.5, 5.0])
     parser.add_argument("--cfls", type=float, nargs="+", default=[0.4, 0.1])
     parser.add_argument("--out", default=None, help="also append the records to this file")
     args = parser.parse_args()
+    settled = args.start == "settled"
     def emit(record: dict) -> None:
-        line = json.dumps(dict(study=args.study, **record))
+        line = json.dumps(dict(study=args.study, start=args.start, **record))
         print(line, flush=True)
         if args.out:
             with open(args.out, "a") as f:
                 f.write(line + "\n")
 
     if args.study == "ranking":
-        for record in ranking(args.gaits, args.arch, args.contact):
+        for record in ranking(args.gaits, args.arch, args.contact, settled):
             emit(record)
         return
     if args.study == "reference":
         for n in args.resolutions:
             emit(dict(dx=f"1/{n}", contact=args.contact,
-                      **reference(args.environment, n, args.arch, args.seconds, args.contact)))
+                      **reference(args.environment, n, args.arch, args.seconds, args.contact, settled)))
         return
     if args.study == "offsets":
         for n in args.resolutions:
             for mu in args.frictions:
                 emit(dict(dx=f"1/{n}", contact=args.contact,
-                          **offsets(n, mu, args.fractions, args.arch, args.fine, args.contact)))
+                          **offsets(n, mu, args.fractions, args.arch, args.fine, args.contact, settled)))
         return
     runs = ([dict(friction=mu, cfl=cfl) for mu in args.frictions for cfl in args.cfls] if args.study == "ground"
             else [dict(cfl=cfl) for cfl in args.cfls])
     for run in runs:
         for n in args.resolutions:
-            measured = (ground(Setting(dx=1 / n, cfl=run["cfl"]), run["friction"], args.arch, contact=args.contact)
+            measured = (ground(Setting(dx=1 / n, cfl=run["cfl"]), run["friction"], args.arch, contact=args.contact,
+                               settled=settled)
                         if args.study == "ground" else floating(1 / n, run["cfl"], args.arch))
             emit(dict(dx=f"1/{n}", contact=args.contact, **run, **measured))
 

@@ -405,14 +405,14 @@ class LocomotionEnv(Environment):
                               "optimise those (a design that moves only the muscles may keep it)")
         return self._relaxed[1].state
 
-    def _start_task(self, particles: Particles, rest: np.ndarray, task: Task | None = None,
+    def _start_task(self, particles: Particles, x: np.ndarray, task: Task | None = None,
                     observer: Observer | None = None) -> EpisodeState:
         """Start `task` (default: the environment's own, observed by its observer) for a design's particles
-        starting at positions `rest` (initial_state's x)."""
+        starting at positions `x` (initial_state's)."""
         task, observer = task or self.task, observer or self.observer
         robot = particles.robot
         mass = torch.as_tensor(particles.volume[robot] * particles.density[robot])
-        rest = rest[robot]
+        rest = x[robot]
         com = (mass.numpy() @ rest) / mass.sum().item()
         task.start(TaskContext(rest_x=rest, start_com=com, control_dt=self.control_dt, horizon=self.horizon))
         watch = IntegrityWatch(mass.numpy(), self.config.dx, self.config.integrity.tolerance,

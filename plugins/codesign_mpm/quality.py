@@ -30,26 +30,26 @@ class Quality:
 
 QUALITY: dict[str, Quality] = {
     "draft": Quality(dx=1 / 32, particles_per_cell=8, cfl=0.4, dtype="float32",
-                     purpose="smoke tests, recipe debugging, quick sweeps: on both robots' fronts, where dx 1/24 "
-                             "more than doubles the desert's error; cfl 0.8 blows up far earlier in "
-                             "docs/stability.md. A gait's distance can be off by half: not for rankings (Spearman "
-                             "0.29 against paper over 8 random gaits, docs/contact.md)"),
+                     purpose="smoke tests, recipe debugging, quick sweeps (the quick start's grid); cfl 0.8 "
+                             "blows up far earlier in docs/stability.md. A gait's distance from rest is a quarter "
+                             "off and fast gaits move differently: not for rankings (Spearman 0.38 against paper "
+                             "over 8 random gaits, docs/contact.md section 17)"),
     "default": Quality(dx=1 / 48, particles_per_cell=8, cfl=0.4, dtype="float32",
                        purpose="the settings every recipe had before presets (kept so that results do not move); "
-                               "day-to-day optimisation at one fixed setting. Ranks gaits as paper does (Spearman "
-                               "0.93 over 8 random gaits), though a gait's distance is about a third off: "
-                               "confirm a number at paper"),
+                               "day-to-day optimisation at one fixed setting. A gait's distance from rest within "
+                               "8% of the reference (the terrain's offset within a cell moves it +-15%), gaits "
+                               "ranked as paper ranks them (Spearman 0.90 over 8 random gaits); from a "
+                               "stress-free start (design optimisation) a third off: confirm a number at paper"),
     "paper": Quality(dx=1 / 96, particles_per_cell=8, cfl=0.4, dtype="float32",
-                     purpose="figures and final numbers: the first setting on the ground robot's front whose "
-                             "distance is within 10% of the reference. Still, moving the terrain by less than a "
-                             "cell moves a gait's distance by about 15% here (docs/contact.md section 13): compare "
-                             "designs on one terrain, not against numbers from another height or dx, or set "
-                             "terrain.contact: surface with cfl 0.2 (1 to 3% over offsets, converged in time; "
-                             "section 15)"),
+                     purpose="figures and final numbers: a gait's distance from rest within 8% of the reference "
+                             "and 2% of dx 1/160, the terrain's offset within a cell moving it +-4% "
+                             "(docs/contact.md section 17); from a stress-free start the offset moves it about "
+                             "15% (section 13): compare designs on one terrain, or set terrain.contact: surface "
+                             "with cfl 0.2 (section 15)"),
     "reference": Quality(dx=1 / 128, particles_per_cell=27, cfl=0.2, dtype="float64",
                          purpose="the finest setting measured on ground: the answer the others are compared with. "
-                                 "Not converged: the terrain's offset within a cell moves a gait's distance by "
-                                 "about 24% here too, and dx 1/192 differs by 16% (docs/contact.md section 13)"),
+                                 "From rest it agrees with dx 1/160 within 6% (docs/contact.md section 17); from a "
+                                 "stress-free start it has no limit (section 13)"),
 }
 QUALITY_NAMES = tuple(QUALITY)
 

@@ -26,7 +26,7 @@ presses into), so `relax` finds its rest by dynamic relaxation instead
 (`environment.robot.settled`): the scene stepped with no action, every velocity zeroed whenever the
 kinetic energy has just passed a peak (kinetic damping), until it is at rest. Started stress-free,
 an animal sags and then rocks on its belly for longer than an episode (the baby seal: its centre of
-mass 5 mm forward in 0.24 s, docs/studies.md), which a task would score as locomotion.
+mass 5 mm forward in 0.24 s, docs/materials.md), which a task would score as locomotion.
 """
 from __future__ import annotations
 
