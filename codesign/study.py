@@ -240,6 +240,20 @@ def still_recipe(study: Study, arm: Arm) -> dict:
     return data
 
 
+def still_dirs(study: Study, root: Path) -> dict[str, Path]:
+    """Where each arm's no-action run lives: ARM/still/ of the first arm whose no-action recipe is the
+    same (its name aside). Arms that differ only in how they optimise (Table 1's diff-physics and
+    PPO) start from the same body and play the same still episode, once."""
+    first: dict[str, Path] = {}
+    where = {}
+    for arm in study.arms:
+        recipe = still_recipe(study, arm)
+        recipe.pop("name")
+        key = json.dumps(recipe, sort_keys=True)
+        where[arm.slug] = first.setdefault(key, root / arm.slug / STILL_DIR)
+    return where
+
+
 def study_dir(study: Study, directory: str | Path | None) -> Path:
     if directory is not None:
         return Path(directory)
@@ -266,6 +280,7 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
                 runner.resume(prepared, progress=progress)
             else:
                 runner.run(resolve_recipe(prepare_recipe(study)), run_dir=prepared, progress=progress)
+    stills = still_dirs(study, root)
     for i, (arm, recipe) in enumerate(zip(study.arms, recipes)):
         arm_dir = root / arm.slug
         resume = (arm_dir / sweeps.SWEEP_FILE).is_file()
@@ -273,7 +288,7 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
             print(f"[{study.name}] arm {i + 1}/{len(study.arms)}: {arm.label}"
                   + (" (continuing)" if resume else ""), file=sys.stderr, flush=True)
         sweeps.run_sweep(recipe, sweep_dir=arm_dir, resume=resume, progress=progress)
-        still = arm_dir / STILL_DIR
+        still = stills[arm.slug]
         if study.still and not sweeps.finished(still):
             if (still / runner.CONFIG_FILE).is_file():
                 runner.resume(still, progress=progress)
@@ -302,6 +317,7 @@ def collect(study: Study, root: Path) -> list[Row]:
     from codesign import sweep as sweeps
 
     rows = []
+    stills = still_dirs(study, root)
     for arm in study.arms:
         runs = [d for d in sorted((root / arm.slug).glob("t*-seed*")) if sweeps.finished(d)]
         if not runs:
@@ -311,8 +327,7 @@ def collect(study: Study, root: Path) -> list[Row]:
             per_step.append(_per_step_return(run))
             torn.append(load_best_info(run).get("torn_fraction", float("nan")))  # environments with bodies
             wall.append(_summary_of(run)["wall_time"])
-        still_dir = root / arm.slug / STILL_DIR
-        still = _per_step_return(still_dir) if sweeps.finished(still_dir) else None
+        still = _per_step_return(stills[arm.slug]) if sweeps.finished(stills[arm.slug]) else None
         rows.append(Row(arm, tuple(per_step), tuple(torn), tuple(wall), still))
     if not rows:
         raise CodesignError(f"study {study.name}: no arm has a finished run in {root}; "

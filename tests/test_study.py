@@ -50,21 +50,28 @@ def test_each_arm_runs_once_per_seed_and_the_table_holds_each_best_return_per_st
 
 def test_each_arm_also_plays_its_starting_design_without_any_action(tmp_path, toy_study, cli):
     """The table's "no action" column: what the arm's body scores by itself (first seed, every action
-    0), from a run of its own beside the arm's seeds; `study.still: false` leaves it out."""
-    code, out, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
+    0), from a run beside the arm's seeds, played once for arms whose still episodes are the same (the
+    toy's arms differ only in the controller); `study.still: false` leaves it out."""
+    spec = yaml.safe_load(toy_study.read_text())
+    spec["study"]["arms"].append({"label": "Far targets", "set": {"environment.target_range": 0.3}})
+    three = tmp_path / "three.yaml"
+    three.write_text(yaml.safe_dump(spec))
+    code, out, err = cli("study", str(three), "--dir", str(tmp_path / "s"), "--no-progress")
     assert code == 0, err
     root = Path(out.strip())
     rows = {r["arm"]: r for r in csv.DictReader((root / "table.csv").open())}
-    for arm, label in (("loose_bound", "Loose bound"), ("tight_bound", "Tight bound")):
-        still = root / arm / "still"
+    for arm, label, played in (("loose_bound", "Loose bound", "loose_bound"), ("tight_bound", "Tight bound", "loose_bound"),
+                               ("far_targets", "Far targets", "far_targets")):
+        still = root / played / "still"
         config = yaml.safe_load((still / "config.yaml").read_text())
         assert config["seed"] == 0 and config["optimizer"]["name"] == "evaluate"
         assert not np.load(still / "trajectory-0.npz")["actions"].any()
         episode_return = json.loads((still / "summary.json").read_text())["best"]["episode_return"]
         assert float(rows[label]["still"]) == pytest.approx(episode_return / config["environment"]["horizon"])
+    assert not (root / "tight_bound" / "still").exists()
+    assert rows["Far targets"]["still"] != rows["Loose bound"]["still"]
     assert "| no action |" in (root / "table.md").read_text()
 
-    spec = yaml.safe_load(toy_study.read_text())
     spec["study"]["still"] = False
     quiet = tmp_path / "quiet.yaml"
     quiet.write_text(yaml.safe_dump(spec))
