@@ -1,4 +1,5 @@
-"""A settled start (codesign_mpm.settle): layers carry their own weight from frame 0."""
+"""A settled start (codesign_mpm.settle): layers carry their own weight from frame 0; a relaxed body is at
+rest and carries its weight."""
 import math
 
 import numpy as np
@@ -6,7 +7,7 @@ import pytest
 
 from codesign_mpm import BodySpec, MaterialSpec, Scene, ShapeSpec, TerrainSpec, build_particles
 from codesign_mpm.engine import Simulator
-from codesign_mpm.settle import settled_state
+from codesign_mpm.settle import RELAX_FRAMES, REST_SPEED, relax, settled_state
 
 G, DEPTH = 3.8, 0.15
 
@@ -121,5 +122,35 @@ def test_a_settled_layer_starts_on_or_inside_its_yield_surface_and_keeps_its_wei
         sim.set_initial_state(F=F, Jp=jp)
         assert vertical_stress_error(sim, particles, 0) < 0.02, name
         assert vertical_stress_error(sim, particles, 5) < 0.1, name
+    finally:
+        sim.close()
+
+
+def test_a_relaxed_body_is_at_rest_and_every_slice_carries_the_weight_above_it():
+    """`relax` (dynamic relaxation, the robot's settled start) ends in a static equilibrium: the
+    next frames leave the body where it is, and, by force balance on the part above any horizontal
+    slice (exact for a body standing on the floor, whatever the lateral distribution), the slice's
+    vertical force sum_slice sigma_yy V / thickness = sum_slice tau_yy V0 / thickness is minus the
+    weight above it. Stress-free, every slice would carry nothing."""
+    scene = Scene(size=[0.5, 0.35, 0.35], dx=1 / 32, dtype="float64", terrain=TerrainSpec(kind="flat", height=0.0625),
+                  bodies=[BodySpec(shape=ShapeSpec(size=[0.16, 0.16, 0.16]), center=[0.25, 0.0, 0.175],
+                                   rest_on_terrain=True, material=MaterialSpec(youngs_modulus=5e4))])
+    particles = build_particles(scene)
+    mass = particles.volume * particles.density
+    sim = Simulator(scene, particles)
+    try:
+        relaxed = relax(sim, mass)
+        assert relaxed.speed < REST_SPEED and relaxed.frames < RELAX_FRAMES
+        x = relaxed.state["x"]
+        tau_yy = sim.stress()[:, 1, 1]
+        g = -scene.gravity[1]
+        for cut in (0.3, 0.5, 0.7):  # heights within the body, as fractions of its height
+            y = x[:, 1].min() + cut * np.ptp(x[:, 1])
+            band = np.abs(x[:, 1] - y) < scene.dx / 2  # two layers of particles
+            carried = float(tau_yy[band] @ particles.volume[band]) / scene.dx
+            assert carried == pytest.approx(-g * mass[x[:, 1] > y].sum(), rel=0.1), cut
+        com = mass @ x / mass.sum()
+        sim.step(frames=5)
+        assert np.abs(mass @ sim.particles_state()[0] / mass.sum() - com).max() < 1e-4
     finally:
         sim.close()
