@@ -47,7 +47,7 @@ SETTLING = ("water", "sand", "snow", "clay", "mud")
 """Materials that start settled in any body shape (layers of any material do too)."""
 INSIDE = 1.0 - 1e-6  # states put on a yield surface are put this fraction of the way to it
 REST_SPEED = 1e-3  # m/s: the RMS speed of the particles under which a relaxed scene is at rest
-RELAX_FRAMES = 250  # the most frames a relaxation takes (2 s at 8 ms; a body sinking in water never rests)
+RELAX_FRAMES = 250  # the most frames a relaxation takes (2 s at 8 ms)
 
 
 def _bisect(stress, pressure: np.ndarray, lo: float = -3.0) -> np.ndarray:
