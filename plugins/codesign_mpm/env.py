@@ -462,8 +462,9 @@ class LocomotionEnv(Environment):
         whose `backward()` reaches the torch parameters behind both (codesign_mpm.episode)."""
         return run_episode(self, design, controller, checkpoint_every)
 
-    def grad_simulator(self, particles: Particles) -> Simulator:
-        """A differentiable simulator for `particles` (one per particle count, sharing one layout)."""
+    def grad_simulator(self, particles: Particles, start: dict[str, np.ndarray] | None = None) -> Simulator:
+        """A differentiable simulator for `particles` (one per particle count, sharing one layout) at
+        `start` (default: `initial_state(particles)`)."""
         if self._grad_sim is None or self._grad_sim.n != particles.n:
             if self._grad_sim is not None:
                 self._grad_sim.close()
@@ -471,7 +472,7 @@ class LocomotionEnv(Environment):
                                        checkpoint_every=self.config.checkpoint_every, capacity=self.capacity)
         else:
             self._grad_sim.reset(particles)
-        self._grad_sim.set_initial_state(**self.initial_state(particles))
+        self._grad_sim.set_initial_state(**(self.initial_state(particles) if start is None else start))
         return self._grad_sim
 
     def close(self) -> None:

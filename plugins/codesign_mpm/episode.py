@@ -75,8 +75,8 @@ def run_episode(env: EpisodeEnvironment, design: DesignFields, controller: Contr
                 checkpoint_every: int | None = None) -> Episode:
     particles, inputs = design_inputs(env, design)
     volume, stiffness, muscle, fiber = inputs
-    sim = env.grad_simulator(particles)
     start = env.initial_state(particles)
+    sim = env.grad_simulator(particles, start)
     watch = env._start_task(particles, start["x"]).watch
     n = len(watch.mass)
     sim.on_frame = watch.see
