@@ -32,7 +32,7 @@ from codesign_mpm.materials import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio,
 from codesign_mpm.observations import Observer
 from codesign_mpm.sampling import Particles, build_particles
 from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
-from codesign_mpm.settle import REST_SPEED, Relaxed, relax, settled_state
+from codesign_mpm.settle import REST_SPEED, ROBOT_REST_SPEED, Relaxed, relax, settled_state
 from codesign_mpm.tasks import TASKS, RobotFrame, Task, TaskContext
 from codesign_mpm.terrain import height_map
 
@@ -392,12 +392,13 @@ class LocomotionEnv(Environment):
         if self._relaxed is None:
             sim = Simulator(self.scene, particles, capacity=self.capacity)
             sim.set_initial_state(**start)
-            relaxed = relax(sim, particles.volume * particles.density)
+            relaxed = relax(sim, particles.volume * particles.density, robot=particles.robot)
             sim.close()
-            if relaxed.speed >= REST_SPEED:
+            if not relaxed.at_rest:
                 warnings.warn(f"environment.robot.settled: the scene is not at rest after {relaxed.frames} frames "
-                              f"(RMS speed {relaxed.speed:.1e} m/s, rest under {REST_SPEED:g}; a body denser than "
-                              f"water sinks); it starts from there", stacklevel=2)
+                              f"(RMS speed {relaxed.speed:.1e} m/s, the robot's {relaxed.robot_speed:.1e}; at rest "
+                              f"under {REST_SPEED:g} and {ROBOT_REST_SPEED:g}; in water a body rises or sinks "
+                              "unless it is as dense as the water); it starts from there", stacklevel=2)
             self._relaxed = (body, relaxed)
         elif self._relaxed[0] != body:
             raise RecipeError("invalid recipe: environment.robot.settled: true starts a fixed body at rest (relaxed "
