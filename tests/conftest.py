@@ -31,6 +31,12 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 @pytest.fixture(autouse=True)
+def private_caches(monkeypatch, tmp_path):
+    """Each test keeps codesign's own caches (relaxed starts) to itself, not the user's."""
+    monkeypatch.setenv("CODESIGN_CACHE", str(tmp_path / "codesign-cache"))
+
+
+@pytest.fixture(autouse=True)
 def fresh_plugins(monkeypatch):
     """Every test sees the installed plugins plus tests/toy_plugin.py, loaded afresh."""
     monkeypatch.setenv(plugins.EXPLICIT_ENV, "toy_plugin")

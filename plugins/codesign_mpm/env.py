@@ -32,7 +32,7 @@ from codesign_mpm.materials import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio,
 from codesign_mpm.observations import Observer
 from codesign_mpm.sampling import Particles, build_particles
 from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
-from codesign_mpm.settle import REST_SPEED, ROBOT_REST_SPEED, Relaxed, relax, settled_state
+from codesign_mpm.settle import REST_SPEED, ROBOT_REST_SPEED, Relaxed, relax_scene, settled_state
 from codesign_mpm.tasks import TASKS, RobotFrame, Task, TaskContext
 from codesign_mpm.terrain import height_map
 
@@ -376,7 +376,7 @@ class LocomotionEnv(Environment):
     def initial_state(self, particles: Particles) -> dict[str, np.ndarray]:
         """The state a design's particles start from (`Simulator.set_initial_state` keywords x, v, C,
         F, Jp): the robot stress-free and at rest, the cover loaded by its own weight; with
-        `robot.settled`, the scene relaxed to rest (`settle.relax`, once per environment)."""
+        `robot.settled`, the scene relaxed to rest (`settle.relax_scene`: once per body, kept on disk)."""
         F, jp = np.tile(np.eye(3), (particles.n, 1, 1)), np.ones(particles.n)
         if self._settled and self.cover_particles.n:
             rest = ~particles.robot
@@ -385,15 +385,12 @@ class LocomotionEnv(Environment):
         return self._relaxed_start(particles, start) if self.config.robot.settled else start
 
     def _relaxed_start(self, particles: Particles, start: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """`start` relaxed to rest (`settle.relax`), found for the first body and reused: the same
+        """`start` relaxed to rest (`settle.relax_scene`), found for the first body and reused: the same
         body needs no action to settle, whatever its muscles; a body of another shape or stiffness
         would need its own, which no gradient could reach (the relaxation is forward only)."""
         body = (particles.n, particles.volume.tobytes(), particles.density.tobytes(), particles.youngs_modulus.tobytes())
         if self._relaxed is None:
-            sim = Simulator(self.scene, particles, capacity=self.capacity)
-            sim.set_initial_state(**start)
-            relaxed = relax(sim, particles.volume * particles.density, robot=particles.robot)
-            sim.close()
+            relaxed = relax_scene(self.scene, particles, start, capacity=self.capacity)
             if not relaxed.at_rest:
                 warnings.warn(f"environment.robot.settled: the scene is not at rest after {relaxed.frames} frames "
                               f"(RMS speed {relaxed.speed:.1e} m/s, the robot's {relaxed.robot_speed:.1e}; at rest "

@@ -30,8 +30,13 @@ mass 5 mm forward in 0.24 s, docs/materials.md), which a task would score as loc
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
+import hashlib
 import math
+import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -49,6 +54,7 @@ INSIDE = 1.0 - 1e-6  # states put on a yield surface are put this fraction of th
 REST_SPEED = 1e-3  # m/s: the RMS speed of all particles under which a relaxed scene is at rest
 ROBOT_REST_SPEED = 2e-4  # m/s: the robot's own RMS speed under which it is at rest (0.05 mm drift in 0.24 s)
 RELAX_FRAMES = 250  # the most frames a relaxation takes (2 s at 8 ms)
+RELAX_CACHE_FILES = 64  # relaxed starts kept on disk (`relax_scene`), the least recently used dropped
 
 
 def _bisect(stress, pressure: np.ndarray, lo: float = -3.0) -> np.ndarray:
@@ -182,3 +188,56 @@ def relax(sim: Simulator, mass: np.ndarray, robot: np.ndarray | None = None, fra
     x, v, C, F = sim.particles_state()
     state = {"x": x, "v": np.zeros_like(v), "C": np.zeros_like(C), "F": F, "Jp": sim.plastic_volume_ratio()}
     return Relaxed(state, frame, speed, robot_speed, at_rest)
+
+
+def relax_cache_dir() -> Path:
+    """Where `relax_scene` keeps relaxed starts: $CODESIGN_CACHE/relaxed (default ~/.cache/codesign)."""
+    return Path(os.environ.get("CODESIGN_CACHE") or Path.home() / ".cache" / "codesign") / "relaxed"
+
+
+@functools.cache
+def _engine_digest() -> str:
+    """A digest of this package's source: a relaxed start computed by other physics is not reused."""
+    package = Path(__file__).parent
+    digest = hashlib.sha256()
+    for path in sorted(package.rglob("*.py")):
+        digest.update(path.relative_to(package).as_posix().encode() + path.read_bytes())
+    return digest.hexdigest()
+
+
+def _relax_key(scene: Scene, particles: Particles, start: dict[str, np.ndarray]) -> str:
+    digest = hashlib.sha256(f"{_engine_digest()} {scene!r} {REST_SPEED} {ROBOT_REST_SPEED} {RELAX_FRAMES}".encode())
+    arrays = [getattr(particles, f.name) for f in dataclasses.fields(particles)] + [start[k] for k in sorted(start)]
+    for array in arrays:
+        array = np.ascontiguousarray(array)
+        digest.update(f"{array.dtype} {array.shape}".encode() + array.tobytes())
+    return digest.hexdigest()
+
+
+def relax_scene(scene: Scene, particles: Particles, start: dict[str, np.ndarray], capacity: int | None = None) -> Relaxed:
+    """`relax` the scene's particles from `start` (`Simulator.set_initial_state` keywords), the robot's
+    own speed included in the rest test, or load the result of an identical relaxation (same scene,
+    particles, start and engine source) from `relax_cache_dir()`: a study relaxes each body once,
+    not once per task, method and seed (in the ocean 250 frames, half a minute at dx 1/48)."""
+    from codesign_mpm.engine import Simulator
+
+    path = relax_cache_dir() / f"{_relax_key(scene, particles, start)}.npz"
+    if path.is_file():
+        with np.load(path) as saved:
+            path.touch()  # recently used
+            return Relaxed({k: saved[k] for k in ("x", "v", "C", "F", "Jp")}, int(saved["frames"]),
+                           float(saved["speed"]), float(saved["robot_speed"]), bool(saved["at_rest"]))
+    sim = Simulator(scene, particles, capacity=capacity)
+    try:
+        sim.set_initial_state(**start)
+        relaxed = relax(sim, particles.volume * particles.density, robot=particles.robot)
+    finally:
+        sim.close()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_suffix(f".{os.getpid()}.tmp.npz")
+    np.savez(partial, **relaxed.state, frames=relaxed.frames, speed=relaxed.speed,
+             robot_speed=relaxed.robot_speed, at_rest=relaxed.at_rest)
+    partial.replace(path)  # whole or absent, also with two runs relaxing the same body at once
+    for old in sorted(path.parent.glob("*.npz"), key=lambda p: p.stat().st_mtime)[:-RELAX_CACHE_FILES]:
+        old.unlink(missing_ok=True)
+    return relaxed

@@ -7,7 +7,8 @@ import pytest
 
 from codesign_mpm import BodySpec, MaterialSpec, Scene, ShapeSpec, TerrainSpec, build_particles
 from codesign_mpm.engine import Simulator
-from codesign_mpm.settle import RELAX_FRAMES, REST_SPEED, ROBOT_REST_SPEED, relax, settled_state
+from codesign_mpm import settle
+from codesign_mpm.settle import RELAX_FRAMES, REST_SPEED, ROBOT_REST_SPEED, relax, relax_scene, settled_state
 
 G, DEPTH = 3.8, 0.15
 
@@ -178,3 +179,23 @@ def test_a_body_in_water_is_at_rest_by_its_own_speed_not_the_waters():
         assert np.linalg.norm(drift) < 3 * ROBOT_REST_SPEED * frames * scene.frame_dt
     finally:
         sim.close()
+
+
+def test_a_relaxation_is_computed_once_per_scene_and_reused_from_the_cache(monkeypatch):
+    """`relax_scene` keeps each relaxed start on disk: the same scene, particles and start load it
+    (identical arrays, no simulation); another scene (here another friction) relaxes anew."""
+    calls = []
+    monkeypatch.setattr(settle, "relax", lambda *a, **kw: calls.append(1) or relax(*a, **kw))
+
+    def scene(friction):
+        return Scene(size=[0.4, 0.3, 0.3], dx=1 / 32, terrain=TerrainSpec(kind="flat", height=0.0625, friction=friction),
+                     bodies=[BodySpec(shape=ShapeSpec(size=[0.1, 0.06, 0.06]), center=[0.2, 0.0, 0.15],
+                                      rest_on_terrain=True, robot=True, material=MaterialSpec(youngs_modulus=2e5))])
+    particles = build_particles(scene(0.5))
+    start = {"x": particles.x, "F": np.tile(np.eye(3), (particles.n, 1, 1))}
+    first = relax_scene(scene(0.5), particles, start)
+    again = relax_scene(scene(0.5), particles, start)
+    assert len(calls) == 1 and first.frames == again.frames > 1 and again.at_rest == first.at_rest
+    assert all(np.array_equal(first.state[k], again.state[k]) for k in first.state)
+    relax_scene(scene(0.3), particles, start)
+    assert len(calls) == 2
