@@ -6,7 +6,8 @@ Bitwise equality is what a pure move of code gives on the machine that stored th
 test reports it; it does not demand it, since LLVM's fast-math may reorder a kernel's arithmetic
 when only the order of its loads changes (and another CPU or compiler version rounds differently).
 What it demands: states (positions, velocities, F, J_p, stress, centre of mass) within 1e-5 and
-gradients within 1e-3 of the largest magnitude of the same array, and the same substep counts.
+gradients within 1e-3 of the largest magnitude of the same array (plus 1e-18: an array that is zero
+up to round-off), and the same substep counts.
 Set CODESIGN_PINS_BITWISE=1 to require bit equality (on the machine that wrote the data).
 Regenerate the data with `python tests/mpm/engine_pins.py` only when a change of results is meant.
 """
@@ -19,6 +20,7 @@ from engine_pins import DATA, compute  # same folder: pytest puts it on sys.path
 
 STATE_TOLERANCE = 1e-5
 GRADIENT_TOLERANCE = 1e-3
+ROUNDOFF_GRADIENT = 1e-18  # an array of gradients this small everywhere is zero up to round-off (mixed_f64's J_p: 3e-22)
 
 
 @pytest.fixture(scope="module")
@@ -39,10 +41,11 @@ def test_the_pinned_scenes_give_the_stored_results(pins):
         different.append(key)
         if key.endswith("substeps"):
             raise AssertionError(f"{key}: substeps {got.tolist()} != {expected.tolist()}")
-        tolerance = GRADIENT_TOLERANCE if key.split("/")[1].startswith("grad_") else STATE_TOLERANCE
+        gradient = key.split("/")[1].startswith("grad_")
+        tolerance = GRADIENT_TOLERANCE if gradient else STATE_TOLERANCE
         scale = float(np.abs(expected).max(initial=0.0))
         error = float(np.abs(got.astype(np.float64) - expected).max())
-        assert error <= tolerance * scale, (key, error, scale)
+        assert error <= tolerance * scale + (ROUNDOFF_GRADIENT if gradient else 0.0), (key, error, scale)
     print(f"engine pins: {len(stored) - len(different)} of {len(stored)} arrays bitwise equal"
           + (f"; within tolerance: {', '.join(different)}" if different else ""))
     if os.environ.get("CODESIGN_PINS_BITWISE") == "1":

@@ -158,15 +158,19 @@ class _Transfers:
             taking_part = self._takes_part(p, s)
             self.in_contact[p] = taking_part
             in_contact = mass * ti.cast(taking_part, float)
+        # node n = (i, j, k) gets w_n (m v + A (n - fx) dx) = w_n (q0 + dx A n): A's columns added for
+        # the offsets that are not 0, no 3x3 product per node (27 of them cost Taichi's frontend)
+        a_dx, i_dx = dx * affine, dx * inertia
+        q0 = mass * self.v[s, p] - a_dx @ fx
+        q0_old = mass * self.v[s, p] - i_dx @ fx
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            offset = ti.Vector([i, j, k])
-            dpos = (ti.cast(offset, float) - fx) * dx
+            o = ti.static((i, j, k))
             weight = w[i][0] * w[j][1] * w[k][2]
-            momentum = weight * (mass * self.v[s, p] + affine @ dpos)
-            I = node + offset
+            momentum = weight * self._at_node(q0, a_dx, o)
+            I = node + ti.Vector(o)
             before = ti.Vector.zero(float, 3)
             if ti.static(self.has_flip):
-                before = weight * (mass * self.v[s, p] + inertia @ dpos)  # without the force
+                before = weight * self._at_node(q0_old, i_dx, o)  # without the force
             if ti.static(self.private_scatter):  # plain adds: a float atomic add is a compare-and-swap loop
                 c = self.grid_part[copy, I[0], I[1], I[2]]
                 self.grid_part[copy, I[0], I[1], I[2]] = c + self._part(momentum, weight * mass, before,
@@ -302,16 +306,21 @@ class _Transfers:
         inv_dx = 1.0 / self.dx[None]
         node, fx, w = self._stencil(p, s)
         new_v = ti.Vector.zero(float, 3)
-        new_C = ti.Matrix.zero(float, 3, 3)
         old_v = ti.Vector.zero(float, 3)
+        moment = ti.Matrix.zero(float, 3, 3)  # sum w_n v_n n^T: C = 4 / dx (moment - new_v fx^T)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            offset = ti.Vector([i, j, k])
-            g_v = self.grid_v_out[node + offset]
+            o = ti.static((i, j, k))
+            g_v = self.grid_v_out[node + ti.Vector(o)]
             weight = w[i][0] * w[j][1] * w[k][2]
-            new_v += weight * g_v
-            new_C += 4.0 * inv_dx * weight * g_v.outer_product(ti.cast(offset, float) - fx)
+            w_v = weight * g_v
+            new_v += w_v
+            for d in ti.static(range(3)):  # only the offsets that are not 0: no 3x3 product per node
+                if ti.static(o[d]):
+                    for e in ti.static(range(3)):
+                        moment[e, d] += o[d] * w_v[e]
             if ti.static(self.has_flip):
-                old_v += weight * self.grid_v_old[node + offset]
+                old_v += weight * self.grid_v_old[node + ti.Vector(o)]
+        new_C = 4.0 * inv_dx * (moment - new_v.outer_product(fx))
         if ti.static(self.has_flip):
             self.v[so, p] = new_v + self._flip_share(p, s) * (self.v[s, p] - old_v)
         else:
