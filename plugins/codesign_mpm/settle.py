@@ -174,6 +174,7 @@ def relax(sim: Simulator, mass: np.ndarray, robot: np.ndarray | None = None, fra
         return math.sqrt(float(mass[sel] @ (v[sel] * v[sel]).sum(1)) / mass[sel].sum())
 
     before, frame, at_rest = np.inf, 0, False
+    speed = robot_speed = math.inf
     while frame < frames and not at_rest:
         sim.step(None)
         frame += 1
