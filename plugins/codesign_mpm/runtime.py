@@ -9,6 +9,9 @@ CACHE_LIMIT_BYTES = 1024**3  # Taichi takes a C int: under 2 GiB
 """Taichi's default offline cache (100 MiB, least recently used out) holds fewer kernels than the
 test suite and reports compile: at that size a warm run recompiles what the cache evicted."""
 
+POSITION_CACHE_LIMIT = 200_000
+"""Source excerpts kept by `_memoize_source_positions` before the cache starts afresh."""
+
 _current: tuple[str, str] | None = None
 generation = 0  # bumped on every re-initialisation; simulators built before it are dead
 
@@ -23,6 +26,7 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
     wanted = (arch, dtype)
     if _current == wanted:
         return
+    _memoize_source_positions()
     if _current is not None:
         ti.reset()
     arch_obj = {"cpu": ti.cpu, "cuda": ti.cuda, "gpu": ti.gpu, "vulkan": ti.vulkan, "metal": ti.metal}[arch]
@@ -38,6 +42,43 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
     )
     _current = wanted
     generation += 1
+
+
+def _memoize_source_positions() -> None:
+    """Have Taichi's frontend format each source position once.
+
+    For every AST node it visits, Taichi's frontend formats the node's source excerpt (text wrapped
+    with `textwrap`, underlined with carets) to quote in error messages; a `ti.static` loop visits
+    its body once per unrolled iteration, so p2g's 27 nodes format the same excerpts 27 times. That
+    formatting was half of the frontend's time in a profile of a study's tiny run, and a warm run
+    pays the frontend for every kernel of every new storage (docs/performance.md). The excerpt
+    depends only on the node's place in its source, so it is kept per place: the same text, once.
+    Taichi versions without this method (`ASTTransformerContext.get_pos_info`) are left alone."""
+    from taichi.lang.ast import ast_transformer_utils
+
+    context = getattr(ast_transformer_utils, "ASTTransformerContext", None)
+    original = getattr(context, "get_pos_info", None)
+    if original is None or getattr(original, "memoized", False):
+        return
+    excerpts: dict[tuple, str] = {}
+
+    def get_pos_info(self, node) -> str:
+        body = getattr(node, "body", None)
+        try:
+            place = (self.file, self.lineno_offset, self.indent, self.func.func.__name__, type(node).__name__,
+                     node.lineno, node.end_lineno, node.col_offset, node.end_col_offset,
+                     body[0].lineno if isinstance(body, list) and body else None, self.src[node.lineno - 1])
+        except (AttributeError, IndexError, TypeError):
+            return original(self, node)
+        excerpt = excerpts.get(place)
+        if excerpt is None:
+            if len(excerpts) >= POSITION_CACHE_LIMIT:
+                excerpts.clear()
+            excerpt = excerpts[place] = original(self, node)
+        return excerpt
+
+    get_pos_info.memoized = True
+    context.get_pos_info = get_pos_info
 
 
 MAX_SCATTER_COPIES = 4
