@@ -37,16 +37,13 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from codesign_mpm.engine import Simulator
 from codesign_mpm.materials import ID, MIN_HARDENING, lame
 from codesign_mpm.sampling import Particles
 from codesign_mpm.scene import Scene, SceneError
-
-if TYPE_CHECKING:
-    from codesign_mpm.engine import Simulator
 
 SETTLING = ("water", "sand", "snow", "clay", "mud")
 """Materials that start settled in any body shape (layers of any material do too)."""
@@ -155,8 +152,15 @@ class Relaxed:
     """All the particles' RMS speed at its last frame's end (before the velocities were zeroed)."""
     robot_speed: float
     """The robot's own RMS speed then (0 without a robot)."""
-    at_rest: bool
-    """Whether both were under their rest speeds."""
+
+    @property
+    def at_rest(self) -> bool:
+        """Whether both were under their rest speeds."""
+        return _at_rest(self.speed, self.robot_speed)
+
+
+def _at_rest(speed: float, robot_speed: float) -> bool:
+    return speed < REST_SPEED and robot_speed < ROBOT_REST_SPEED
 
 
 def relax(sim: Simulator, mass: np.ndarray, robot: np.ndarray | None = None, frames: int = RELAX_FRAMES) -> Relaxed:
@@ -169,26 +173,22 @@ def relax(sim: Simulator, mass: np.ndarray, robot: np.ndarray | None = None, fra
     drifting, which a task would score). What is left is a static equilibrium of the scene under
     gravity on the terrain (forward only: no gradient reaches the start through it)."""
     robot = robot if robot is not None and robot.any() else None
-
-    def rms(v: np.ndarray, sel: np.ndarray | slice) -> float:
-        return math.sqrt(float(mass[sel] @ (v[sel] * v[sel]).sum(1)) / mass[sel].sum())
-
-    before, frame, at_rest = np.inf, 0, False
-    speed = robot_speed = math.inf
-    while frame < frames and not at_rest:
+    total = mass.sum()
+    before, frame, speed, robot_speed = np.inf, 0, math.inf, math.inf
+    while frame < frames and not _at_rest(speed, robot_speed):
         sim.step(None)
         frame += 1
         x, v, C, F = sim.particles_state()
         energy = 0.5 * float(mass @ (v * v).sum(1))
-        speed, robot_speed = rms(v, slice(None)), 0.0 if robot is None else rms(v, robot)
-        at_rest = speed < REST_SPEED and robot_speed < ROBOT_REST_SPEED
-        if energy < before or at_rest:
+        speed = math.sqrt(2 * energy / total)
+        robot_speed = 0.0 if robot is None else math.sqrt(float(mass[robot] @ (v[robot] ** 2).sum(1)) / mass[robot].sum())
+        if energy < before or _at_rest(speed, robot_speed):
             sim.set_initial_state(x=x, v=np.zeros_like(v), C=np.zeros_like(C), F=F, Jp=sim.plastic_volume_ratio())
             energy = 0.0
         before = energy
     x, v, C, F = sim.particles_state()
     state = {"x": x, "v": np.zeros_like(v), "C": np.zeros_like(C), "F": F, "Jp": sim.plastic_volume_ratio()}
-    return Relaxed(state, frame, speed, robot_speed, at_rest)
+    return Relaxed(state, frame, speed, robot_speed)
 
 
 def relax_cache_dir() -> Path:
@@ -220,14 +220,12 @@ def relax_scene(scene: Scene, particles: Particles, start: dict[str, np.ndarray]
     own speed included in the rest test, or load the result of an identical relaxation (same scene,
     particles, start and engine source) from `relax_cache_dir()`: a study relaxes each body once,
     not once per task, method and seed (in the ocean 250 frames, half a minute at dx 1/48)."""
-    from codesign_mpm.engine import Simulator
-
     path = relax_cache_dir() / f"{_relax_key(scene, particles, start)}.npz"
     if path.is_file():
         with np.load(path) as saved:
             path.touch()  # recently used
             return Relaxed({k: saved[k] for k in ("x", "v", "C", "F", "Jp")}, int(saved["frames"]),
-                           float(saved["speed"]), float(saved["robot_speed"]), bool(saved["at_rest"]))
+                           float(saved["speed"]), float(saved["robot_speed"]))
     sim = Simulator(scene, particles, capacity=capacity)
     try:
         sim.set_initial_state(**start)
@@ -235,9 +233,9 @@ def relax_scene(scene: Scene, particles: Particles, start: dict[str, np.ndarray]
     finally:
         sim.close()
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_suffix(f".{os.getpid()}.tmp.npz")
-    np.savez(partial, **relaxed.state, frames=relaxed.frames, speed=relaxed.speed,
-             robot_speed=relaxed.robot_speed, at_rest=relaxed.at_rest)
+    partial = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # not *.npz: the pruning below leaves it alone
+    with partial.open("wb") as file:
+        np.savez(file, **relaxed.state, frames=relaxed.frames, speed=relaxed.speed, robot_speed=relaxed.robot_speed)
     partial.replace(path)  # whole or absent, also with two runs relaxing the same body at once
     for old in sorted(path.parent.glob("*.npz"), key=lambda p: p.stat().st_mtime)[:-RELAX_CACHE_FILES]:
         old.unlink(missing_ok=True)
