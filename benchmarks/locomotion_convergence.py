@@ -13,6 +13,7 @@ Prints JSON lines (and appends them to --out); docs/contact.md reads them.
     python benchmarks/locomotion_convergence.py reference --environment desert --resolutions 64 96 128 --arch cuda
     python benchmarks/locomotion_convergence.py offsets --resolutions 48 96 --frictions 0.5 5
     python benchmarks/locomotion_convergence.py offsets --resolutions 32 48 --frictions 0.5 --contact surface
+    python benchmarks/locomotion_convergence.py offsets --environment desert --resolutions 64 --frictions 0.5 --fine
 """
 from __future__ import annotations
 
@@ -38,9 +39,10 @@ def fine(n: int) -> Setting:
 
 
 def ground(setting: Setting, friction: float, arch: str, actions=gait, terrain_height: float = 0.13,
-           contact: str = "nodes", settled: bool = True) -> dict:
-    """Distance along x after 1 s (and after 0.5 s) of a gait (`actions(frame, k)`), on robot_ground's setup."""
-    env = robot_env("ground", setting, FRAMES, friction=friction, arch=arch, terrain_height=terrain_height,
+           contact: str = "nodes", settled: bool = True, environment: str = "ground") -> dict:
+    """Distance along x after 1 s (and after 0.5 s) of a gait (`actions(frame, k)`), on robot_ground's setup
+    (`environment` desert: robot_desert's, the sand laid on that terrain)."""
+    env = robot_env(environment, setting, FRAMES, friction=friction, arch=arch, terrain_height=terrain_height,
                     contact=contact, settled=settled)
     record = walk(env, actions)
     env.close()
@@ -107,15 +109,15 @@ def reference(environment: str, n: int, arch: str, seconds: float, contact: str,
 
 
 def offsets(n: int, friction: float, fractions: list[float], arch: str, at_reference: bool, contact: str,
-            settled: bool) -> dict:
+            settled: bool, environment: str = "ground") -> dict:
     """The gait's distance with the terrain's surface at (floor(0.13 n) + f) / n for each fraction f
     of a cell: how much where the surface falls between node layers moves it (docs/contact.md
     section 13). `at_reference`: at the accuracy report's reference setting (`fine`)."""
     setting = fine(n) if at_reference else Setting(dx=1 / n)
     distances = [ground(setting, friction, arch, terrain_height=(math.floor(0.13 * n) + f) / n,
-                        contact=contact, settled=settled)["distance"] for f in fractions]
+                        contact=contact, settled=settled, environment=environment)["distance"] for f in fractions]
     mean = float(np.mean(distances))
-    return dict(setting=setting.label(), friction=friction, fractions=fractions, distances=distances, mean=mean,
+    return dict(environment=environment, setting=setting.label(), friction=friction, fractions=fractions, distances=distances, mean=mean,
                 half_range_over_mean=(max(distances) - min(distances)) / 2 / abs(mean))
 
 
@@ -126,7 +128,7 @@ def main() -> None:
                         help="offsets: where the surface falls within a cell")
     parser.add_argument("--fine", action="store_true", help="offsets: at the reference setting (27 ppc, f64)")
     parser.add_argument("--environment", default="ground", choices=["ground", "desert"],
-                        help="reference: which robot problem")
+                        help="reference, offsets: which robot problem")
     parser.add_argument("--resolutions", type=int, nargs="+", default=list(RESOLUTIONS), help="1 / dx")
     parser.add_argument("--seconds", type=float, default=1.0, help="reference: simulated time")
     parser.add_argument("--gaits", type=int, default=5, help="ranking: random gaits to rank")
@@ -159,7 +161,8 @@ def main() -> None:
         for n in args.resolutions:
             for mu in args.frictions:
                 emit(dict(dx=f"1/{n}", contact=args.contact,
-                          **offsets(n, mu, args.fractions, args.arch, args.fine, args.contact, settled)))
+                          **offsets(n, mu, args.fractions, args.arch, args.fine, args.contact, settled,
+                                    args.environment)))
         return
     runs = ([dict(friction=mu, cfl=cfl) for mu in args.frictions for cfl in args.cfls] if args.study == "ground"
             else [dict(cfl=cfl) for cfl in args.cfls])
