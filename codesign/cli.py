@@ -145,8 +145,9 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
                        "(does the return hold at a quarter of the step?)."),
         episodes: int = typer.Option(1, "--episodes", min=1, help="Episodes to replay."),
     ) -> None:
-        """Replay a run's best design and controller and print the return of each episode, with the
-        body's integrity where the environment measures it (torn-off mass, thinnest part)."""
+        """Replay a run's best design and controller and print each episode's return and integrity.
+
+        Integrity is printed where the environment measures it (torn-off mass, thinnest part)."""
         from codesign import runner
         from codesign.recipe import parse_overrides
 
