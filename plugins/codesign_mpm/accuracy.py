@@ -451,11 +451,11 @@ PROBLEMS: dict[str, Problem] = {
         notes="The sand layer is 0.02 thick: half a cell at dx 1/24, so coarse grids hardly resolve it. With the "
               "layer the scene has about 8x the particles of the robot alone, so dx 1/96 and finer were left out to "
               "keep the default report near 30 minutes: the finest setting is dx 1/64, and the paper and reference "
-              "presets are not measured here. Measured on a GPU at the reference setting, the distance does not "
-              "converge: 5.1, 7.4, 5.4, 7.0 mm at dx 1/64, 1/96, 1/128, 1/160 from a stress-free start (docs/contact.md "
-              "section 13), 5.8, 8.1, 6.7 mm at dx 1/64, 1/96, 1/128 from rest (section 17). The robot starts at rest "
-              "here too (on the sand it had pressed into): from a stress-free start each distance was within 1 mm of "
-              "these, the error at every setting about the same."),
+              "presets are not measured here. Until 2026-11-26 the layer was sampled a whole number of particle "
+              "spacings thick (0.0234 at 8 particles per cell and 0.0208 at 27, dx 1/64), which moved the distance "
+              "by 40% between those two and kept it from converging (docs/contact.md section 20); sampled exactly "
+              "since, at 8 per cell the robot goes 8.0, 8.4, 6.7, 8.1, 8.3 mm at dx 1/32 to 1/128. The robot "
+              "starts at rest here (on the sand it had pressed into)."),
     "gradient": Problem(
         "gradient", "Gradients of the distance: d/d(actions) and d/d(log stiffness)",
         "d distance / d actions (T x K) and d distance / d log E",
