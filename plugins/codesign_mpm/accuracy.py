@@ -454,8 +454,11 @@ PROBLEMS: dict[str, Problem] = {
               "presets are not measured here. Until 2026-11-26 the layer was sampled a whole number of particle "
               "spacings thick (0.0234 at 8 particles per cell and 0.0208 at 27, dx 1/64), which moved the distance "
               "by 40% between those two and kept it from converging (docs/contact.md section 20); sampled exactly "
-              "since, at 8 per cell the robot goes 8.0, 8.4, 6.7, 8.1, 8.3 mm at dx 1/32 to 1/128. The robot "
-              "starts at rest here (on the sand it had pressed into)."),
+              "since, at 8 per cell the robot goes 8.0, 8.4, 6.7, 8.1, 8.3 mm at dx 1/32 to 1/128: the two finest "
+              "agree within 2%, while at dx 1/64, this report's finest grid and reference, where the terrain falls "
+              "within a cell moves the distance by +-33%, so the errors below are against a reference that is "
+              "itself about 20% under the converged distance. The robot starts at rest here (on the sand it had "
+              "pressed into)."),
     "gradient": Problem(
         "gradient", "Gradients of the distance: d/d(actions) and d/d(log stiffness)",
         "d distance / d actions (T x K) and d distance / d log E",
