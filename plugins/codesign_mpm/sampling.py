@@ -324,7 +324,7 @@ def _layer_particles(scene: Scene, i: int, body: BodySpec, occupied: np.ndarray)
         raise SceneError(f"bodies[{i}].shape.thickness = {thickness!r} is invalid: the layer "
                          f"reaches y = {top:.4g}, above the domain interior (size - {margin:.4g})")
     columns = lattice(np.array([margin, 0.0, margin]), np.array([size[0] - margin, spacing, size[2] - margin]),
-                      spacing)
+                      spacing)  # one lattice row: the columns' (x, z)
     ij = np.clip(np.round(columns[:, [0, 2]] / scene.dx).astype(int), 0, np.asarray(heights.shape) - 1)
     ground = heights[ij[:, 0], ij[:, 1]]
     rows = max(1, round(thickness / spacing))

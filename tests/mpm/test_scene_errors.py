@@ -170,15 +170,15 @@ def test_a_layer_fills_the_terrain_around_other_bodies_without_overlap():
     ij = np.round(layer[:, [0, 2]] / s.dx).astype(int)
     depth = layer[:, 1] - h[ij[:, 0], ij[:, 1]]
     assert depth.min() > 0 and depth.max() < 0.06  # on the terrain, at most the thickness deep
-    # 8 per cell: each column of the lattice spans the layer exactly, whatever the spacing, so a free
-    # column holds the thickness's volume (on a plain lattice it snapped to whole spacings)
+    # 8 per cell: each column spans the layer exactly, whatever the spacing, so a free column holds
+    # the thickness's volume (on a plain lattice the layer snapped to whole spacings: 0.0625 here)
     spacing = s.dx / 2
-    column = np.floor(layer[:, [0, 2]] / spacing).astype(int)
-    _, first, count = np.unique(column, axis=0, return_index=True, return_counts=True)
-    full = count == count.max()  # columns the body leaves whole
-    volumes = p.volume[p.body == 1]
-    assert np.allclose(volumes * count.max(), spacing ** 2 * 0.06)
-    assert full.sum() > 0.9 * len(count) and np.allclose(depth[first[full]], 0.06 / (2 * count.max()))
+    _, count = np.unique(np.floor(layer[:, [0, 2]] / spacing).astype(int), axis=0, return_counts=True)
+    rows = count.max()
+    assert (count == rows).mean() > 0.9  # the columns the body leaves whole
+    assert np.allclose(p.volume[p.body == 1] * rows, spacing ** 2 * 0.06)
+    row = depth / (0.06 / rows) - 0.5  # each particle at the middle of its row above its own ground
+    assert np.allclose(row, np.round(row)) and set(np.round(row).astype(int)) == set(range(rows))
 
 
 def test_a_water_slab_placed_flush_with_both_walls_keeps_its_height():
