@@ -117,8 +117,8 @@ def offsets(n: int, friction: float, fractions: list[float], arch: str, at_refer
     distances = [ground(setting, friction, arch, terrain_height=(math.floor(0.13 * n) + f) / n,
                         contact=contact, settled=settled, environment=environment)["distance"] for f in fractions]
     mean = float(np.mean(distances))
-    return dict(environment=environment, setting=setting.label(), friction=friction, fractions=fractions, distances=distances, mean=mean,
-                half_range_over_mean=(max(distances) - min(distances)) / 2 / abs(mean))
+    return dict(environment=environment, setting=setting.label(), friction=friction, fractions=fractions,
+                distances=distances, mean=mean, half_range_over_mean=(max(distances) - min(distances)) / 2 / abs(mean))
 
 
 def main() -> None:

@@ -173,7 +173,7 @@ def relax(sim: Simulator, mass: np.ndarray, robot: np.ndarray | None = None, fra
     drifting, which a task would score). What is left is a static equilibrium of the scene under
     gravity on the terrain (forward only: no gradient reaches the start through it)."""
     robot = robot if robot is not None and robot.any() else None
-    total = mass.sum()
+    total, robot_mass = mass.sum(), None if robot is None else mass[robot]
     before, frame, speed, robot_speed = np.inf, 0, math.inf, math.inf
     while frame < frames and not _at_rest(speed, robot_speed):
         sim.step(None)
@@ -181,7 +181,7 @@ def relax(sim: Simulator, mass: np.ndarray, robot: np.ndarray | None = None, fra
         x, v, C, F = sim.particles_state()
         energy = 0.5 * float(mass @ (v * v).sum(1))
         speed = math.sqrt(2 * energy / total)
-        robot_speed = 0.0 if robot is None else math.sqrt(float(mass[robot] @ (v[robot] ** 2).sum(1)) / mass[robot].sum())
+        robot_speed = 0.0 if robot is None else math.sqrt(float(robot_mass @ (v[robot] ** 2).sum(1)) / robot_mass.sum())
         if energy < before or _at_rest(speed, robot_speed):
             sim.set_initial_state(x=x, v=np.zeros_like(v), C=np.zeros_like(C), F=F, Jp=sim.plastic_volume_ratio())
             energy = 0.0
