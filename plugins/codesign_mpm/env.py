@@ -30,7 +30,7 @@ from codesign_mpm.episode import Episode, run_episode
 from codesign_mpm.integrity import MIN_THICKNESS_CELLS, IntegrityWatch, resolved_body, thinnest_cells
 from codesign_mpm.materials import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio
 from codesign_mpm.observations import Observer
-from codesign_mpm.sampling import Particles, build_particles
+from codesign_mpm.sampling import Particles, build_particles, layer_ground
 from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
 from codesign_mpm.settle import REST_SPEED, ROBOT_REST_SPEED, Relaxed, relax_scene, settled_state
 from codesign_mpm.tasks import TASKS, RobotFrame, Task, TaskContext
@@ -293,9 +293,7 @@ class LocomotionEnv(Environment):
         x = self.base_particles.x
         if cover.kind == "none" or self.cover_particles.n == 0:
             return np.zeros(len(x), dtype=bool)
-        heights = np.maximum(height_map(self.scene), self.scene.wall)
-        ij = np.clip(np.round(x[:, [0, 2]] / self.scene.dx).astype(int), 0, np.asarray(heights.shape) - 1)
-        ground = heights[ij[:, 0], ij[:, 1]]
+        ground = layer_ground(self.scene, x)
         return (x[:, 1] > ground) & (x[:, 1] < ground + cover.thickness)
 
     def _cover_with_fill(self, fill: np.ndarray) -> Particles:

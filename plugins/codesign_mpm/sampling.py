@@ -304,6 +304,14 @@ def _occupy(occupied: np.ndarray, positions: list[np.ndarray], dx: float) -> Non
         occupied[_cells(x, dx, occupied.shape)] = True
 
 
+def layer_ground(scene: Scene, points: np.ndarray) -> np.ndarray:
+    """Where a layer starts under each point: the terrain's height (not below the wall band) at the
+    node column nearest the point's (x, z)."""
+    heights = np.maximum(height_map(scene), scene.wall)
+    ij = np.clip(np.round(points[:, [0, 2]] / scene.dx).astype(int), 0, np.asarray(heights.shape) - 1)
+    return heights[ij[:, 0], ij[:, 1]]
+
+
 def _layer_particles(scene: Scene, i: int, body: BodySpec, occupied: np.ndarray) -> dict[str, np.ndarray]:
     """A layer of `thickness` on the terrain, wall to wall, minus occupied cells.
 
@@ -316,17 +324,15 @@ def _layer_particles(scene: Scene, i: int, body: BodySpec, occupied: np.ndarray)
     """
     spacing = scene.dx / round(body.particles_per_cell ** (1 / 3))
     margin = scene.wall
-    heights = np.maximum(height_map(scene), margin)
     size = np.asarray(scene.size, dtype=float)
     thickness = body.shape.thickness
-    top = heights.max() + thickness
+    top = max(float(height_map(scene).max()), margin) + thickness
     if top > size[1] - margin:
         raise SceneError(f"bodies[{i}].shape.thickness = {thickness!r} is invalid: the layer "
                          f"reaches y = {top:.4g}, above the domain interior (size - {margin:.4g})")
     columns = lattice(np.array([margin, 0.0, margin]), np.array([size[0] - margin, spacing, size[2] - margin]),
                       spacing)  # one lattice row: the columns' (x, z)
-    ij = np.clip(np.round(columns[:, [0, 2]] / scene.dx).astype(int), 0, np.asarray(heights.shape) - 1)
-    ground = heights[ij[:, 0], ij[:, 1]]
+    ground = layer_ground(scene, columns)
     rows = max(1, round(thickness / spacing))
     row_height = thickness / rows
     x = np.repeat(columns, rows, axis=0)
