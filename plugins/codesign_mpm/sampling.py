@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from codesign.bodies import Body, BodyError, Labels, library_body, load_body
 from codesign.geometry import grid_partition
@@ -168,11 +169,9 @@ def build_particles(scene: Scene) -> Particles:
     for i, body in enumerate(scene.bodies):
         if body.shape.kind != "layer":
             by_body[i] = _body_particles(scene, i, body)
-    occupied = np.zeros(scene.grid_shape, dtype=bool)
     for i, body in enumerate(scene.bodies):
         if body.shape.kind == "layer":
-            _occupy(occupied, [p["x"] for p in by_body.values()], scene.dx)
-            by_body[i] = _layer_particles(scene, i, body, occupied)
+            by_body[i] = _layer_particles(scene, i, body, list(by_body.values()))
     parts = [by_body[i] for i in range(len(scene.bodies))]
     k_total = sum(p["muscle"].shape[1] for p in parts)
     start = 0
@@ -293,15 +292,19 @@ def _fields(i: int, body: BodySpec, x: np.ndarray, volume: float, muscle: np.nda
         robot=np.full(n, body.robot, dtype=bool))
 
 
-def _cells(x: np.ndarray, dx: float, shape: tuple[int, ...]) -> tuple[np.ndarray, ...]:
-    cells = np.clip(np.floor(x / dx).astype(np.int64), 0, np.asarray(shape) - 1)
-    return cells[:, 0], cells[:, 1], cells[:, 2]
-
-
-def _occupy(occupied: np.ndarray, positions: list[np.ndarray], dx: float) -> None:
-    """Mark the grid cells that hold at least one of the given particles."""
-    for x in positions:
-        occupied[_cells(x, dx, occupied.shape)] = True
+def _inside(points: np.ndarray, bodies: list[dict[str, np.ndarray]]) -> np.ndarray:
+    """Which points lie in the space the bodies' particles stand for: within half a particle's width
+    (the cube root of its volume) of one of them along every axis. (Grid cells holding a particle
+    were used before: where a cell boundary fell within the half spacing under a body's lowest row,
+    a sheet of the desert's sand was sampled inside the robot and halved its distance at dx 1/64 and
+    1/96: docs/contact.md section 21.)"""
+    inside = np.zeros(len(points), dtype=bool)
+    for body in bodies:
+        half = 0.5 * np.cbrt(body["volume"])
+        distance, nearest = cKDTree(body["x"]).query(points, p=np.inf, distance_upper_bound=half.max())
+        near = np.isfinite(distance)
+        inside[near] |= distance[near] < half[nearest[near]]
+    return inside
 
 
 def layer_ground(scene: Scene, points: np.ndarray) -> np.ndarray:
@@ -312,8 +315,10 @@ def layer_ground(scene: Scene, points: np.ndarray) -> np.ndarray:
     return heights[ij[:, 0], ij[:, 1]]
 
 
-def _layer_particles(scene: Scene, i: int, body: BodySpec, occupied: np.ndarray) -> dict[str, np.ndarray]:
-    """A layer of `thickness` on the terrain, wall to wall, minus occupied cells.
+def _layer_particles(scene: Scene, i: int, body: BodySpec, others: list[dict[str, np.ndarray]]
+                     ) -> dict[str, np.ndarray]:
+    """A layer of `thickness` on the terrain, wall to wall, minus the space the `others` (the bodies
+    sampled before it) fill.
 
     Each column of particles spans the layer exactly, from its own ground up: round(thickness /
     spacing) rows of equal height, so the layer's mass and top do not snap to the particle
@@ -337,7 +342,7 @@ def _layer_particles(scene: Scene, i: int, body: BodySpec, occupied: np.ndarray)
     row_height = thickness / rows
     x = np.repeat(columns, rows, axis=0)
     x[:, 1] = (ground[:, None] + (np.arange(rows) + 0.5) * row_height).reshape(-1)
-    x = x[~occupied[_cells(x, scene.dx, occupied.shape)]]
+    x = x[~_inside(x, others)]
     if len(x) == 0:
         raise SceneError(f"bodies[{i}].shape = {body.shape!r} is invalid: the layer holds no particle "
                          f"(no free space above the terrain at dx={scene.dx})")

@@ -32,14 +32,13 @@ def test_the_cover_is_laid_around_the_robot_without_overlap(name):
     env = make_env(name)
     robot, cover = env.base_particles, env.cover_particles
     assert cover.n > 0 and not cover.robot.any()
-    robot_cells = {tuple(c) for c in np.floor(robot.x / DX).astype(int)}
-    cover_cells = {tuple(c) for c in np.floor(cover.x / DX).astype(int)}
-    assert not robot_cells & cover_cells
-    # the robot stands on the terrain (rest_on: terrain), not on cover particles
-    footprint = {(i, k) for i, _, k in robot_cells}
-    bottom = robot.x[:, 1].min()
-    beneath = [p for p, c in zip(cover.x, np.floor(cover.x / DX).astype(int)) if (c[0], c[2]) in footprint]
-    assert all(p[1] > bottom for p in beneath)
+    # no cover inside the robot's box (its particles' extent and half a spacing), nor under it: it
+    # stands on the terrain (rest_on: terrain), not on cover particles
+    half = env.spacing / 2 - 1e-9
+    lo, hi = robot.x.min(0) - half, robot.x.max(0) + half
+    assert not np.all((cover.x > lo) & (cover.x < hi), axis=1).any()
+    footprint = np.all((cover.x[:, [0, 2]] > lo[[0, 2]]) & (cover.x[:, [0, 2]] < hi[[0, 2]]), axis=1)
+    assert (cover.x[footprint, 1] > robot.x[:, 1].min()).all()
     thickness = PRESET_CONFIGS[name]().cover.thickness
     assert cover.x[:, 1].min() > 0.1 and cover.x[:, 1].max() < 0.1 + thickness
     if name == "ocean":  # water covers the robot
