@@ -82,18 +82,18 @@ def random_gait(seed: int):
     return lambda frame, k: 0.3 * np.sin(2 * math.pi * hz * frame * 8e-3 + phases)[:k]
 
 
-def ranking(gaits: int, arch: str, contact: str, settled: bool) -> list[dict]:
+def ranking(gaits: int, arch: str, contact: str, settled: bool, environment: str = "ground") -> list[dict]:
     """Each random gait's distance at the draft, default and paper presets, and Spearman's rho
     between the presets' rankings."""
     from codesign_mpm.quality import QUALITY
 
     distances = {}
     for name in ("draft", "default", "paper"):
-        env = robot_env("ground", Setting(dx=QUALITY[name].dx, cfl=QUALITY[name].cfl), FRAMES, friction=0.5, arch=arch,
+        env = robot_env(environment, Setting(dx=QUALITY[name].dx, cfl=QUALITY[name].cfl), FRAMES, arch=arch,
                         contact=contact, settled=settled)  # one per preset: its rest is found once
         distances[name] = [walk(env, random_gait(seed))["distance"] for seed in range(gaits)]
         env.close()
-    records = [dict(preset=name, distances=d) for name, d in distances.items()]
+    records = [dict(environment=environment, preset=name, distances=d) for name, d in distances.items()]
     for a, b in (("draft", "paper"), ("default", "paper"), ("draft", "default")):
         records.append(dict(spearman=f"{a}-{b}", rho=float(spearmanr(distances[a], distances[b]).statistic)))
     return records
@@ -128,7 +128,7 @@ def main() -> None:
                         help="offsets: where the surface falls within a cell")
     parser.add_argument("--fine", action="store_true", help="offsets: at the reference setting (27 ppc, f64)")
     parser.add_argument("--environment", default="ground", choices=["ground", "desert"],
-                        help="reference, offsets: which robot problem")
+                        help="ranking, reference, offsets: which robot problem")
     parser.add_argument("--resolutions", type=int, nargs="+", default=list(RESOLUTIONS), help="1 / dx")
     parser.add_argument("--seconds", type=float, default=1.0, help="reference: simulated time")
     parser.add_argument("--gaits", type=int, default=5, help="ranking: random gaits to rank")
@@ -149,7 +149,7 @@ def main() -> None:
                 f.write(line + "\n")
 
     if args.study == "ranking":
-        for record in ranking(args.gaits, args.arch, args.contact, settled):
+        for record in ranking(args.gaits, args.arch, args.contact, settled, args.environment):
             emit(record)
         return
     if args.study == "reference":
