@@ -446,16 +446,16 @@ PROBLEMS: dict[str, Problem] = {
         "robot_desert", "Robot in the desert (sand cover): distance in 1 s (quick size: 0.25 s)",
         "distance travelled along x",
         "converged: the finest setting (a fixed sine gait, environment `desert`)", measure_robot("desert"), {},
-        notes="The sand layer is 0.02 thick: half a cell at dx 1/24, so coarse grids hardly resolve it. With the "
-              "layer the scene has about 8x the particles of the robot alone, so dx 1/96 and finer were left out to "
-              "keep the default report near 30 minutes: the finest setting is dx 1/64, and the paper and reference "
-              "presets are not measured here. Until 2026-11-26 the layer was sampled a whole number of particle "
-              "spacings thick (0.0234 at 8 particles per cell and 0.0208 at 27, dx 1/64), which moved the distance "
-              "by 40% between those two and kept it from converging (docs/contact.md section 20); sampled exactly "
-              "since, at 8 per cell the robot goes 8.0, 8.4, 6.7, 8.1, 8.3 mm at dx 1/32 to 1/128: the two finest "
-              "agree within 2%, while at dx 1/64, this report's finest grid and reference, where the terrain falls "
-              "within a cell moves the distance by +-33%, so the errors below are against a reference that is "
-              "itself about 20% under the converged distance. The robot starts at rest here (on the sand it had "
+        notes="The sand layer is 0.02 thick: half a cell at dx 1/24, so coarse grids hardly resolve it; with it "
+              "the scene has about 8x the particles of the robot alone (the reference took 49 minutes here). Until "
+              "2026-11-26 the layer was sampled a whole number of particle spacings thick and cut around the robot "
+              "by grid cells, which moved the distance by up to 2x between settings (docs/contact.md sections 20 and "
+              "21). Since, the reference agrees with dx 1/96 at its setting within 2% (6.95 mm): it is converged. "
+              "At 8 particles per cell the distance is 6 and 15% over it at dx 1/48 and 1/96 and 14% under at 1/64 "
+              "(where the sand is 1.3 cells thick); what is left at dx 1/96 is the particles per cell: the sand's "
+              "alone at 27 instead of 8 brings it to 7.64 mm, 8% over (set cover.particles_per_cell: 27 for a final "
+              "number in sand), and 27 at dx 1/48 moves it 11%. Where the terrain falls within a cell moves it +-6% at dx "
+              "1/48, +-13% at 1/64 and +-5% at 1/96 (section 21). The robot starts at rest (on the sand it had "
               "pressed into)."),
     "gradient": Problem(
         "gradient", "Gradients of the distance: d/d(actions) and d/d(log stiffness)",
