@@ -454,9 +454,9 @@ PROBLEMS: dict[str, Problem] = {
               "At 8 particles per cell the distance is 6 and 15% over it at dx 1/48 and 1/96 and 14% under at 1/64 "
               "(where the sand is 1.3 cells thick); what is left at dx 1/96 is the particles per cell: the sand's "
               "alone at 27 instead of 8 brings it to 7.64 mm, 8% over (set cover.particles_per_cell: 27 for a final "
-              "number in sand), and 27 at dx 1/48 moves it 11%. Where the terrain falls within a cell moves it +-6% at dx "
-              "1/48, +-13% at 1/64 and +-5% at 1/96 (section 21). The robot starts at rest (on the sand it had "
-              "pressed into)."),
+              "number in sand), and 27 at dx 1/48 moves it 11%. Where the terrain falls within a cell moves it +-6% "
+              "at dx 1/48, +-13% at 1/64 and +-5% at 1/96 (section 21). The robot starts at rest (on the sand it "
+              "had pressed into)."),
     "gradient": Problem(
         "gradient", "Gradients of the distance: d/d(actions) and d/d(log stiffness)",
         "d distance / d actions (T x K) and d distance / d log E",

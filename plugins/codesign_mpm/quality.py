@@ -33,16 +33,16 @@ QUALITY: dict[str, Quality] = {
                      purpose="smoke tests, recipe debugging, quick sweeps (the quick start's grid); cfl 0.8 "
                              "blows up far earlier in docs/stability.md. A gait's distance from rest is a quarter "
                              "off and fast gaits move differently: not for rankings (Spearman 0.38 against paper "
-                             "over 8 random gaits, docs/contact.md section 17); in the desert a third under the reference (its "
-                             "0.02 of sand is 0.64 cells thick)"),
+                             "over 8 random gaits, docs/contact.md section 17); in the desert a third under the "
+                             "reference (its 0.02 of sand is 0.64 cells thick)"),
     "default": Quality(dx=1 / 48, particles_per_cell=8, cfl=0.4, dtype="float32",
                        purpose="the settings every recipe had before presets (kept so that results do not move); "
                                "day-to-day optimisation at one fixed setting. A gait's distance from rest within "
                                "8% of the reference (the terrain's offset within a cell moves it +-15%), gaits "
                                "ranked as paper ranks them (Spearman 0.90 over 8 random gaits); from a "
-                               "stress-free start (design optimisation) a third off: confirm a number at paper. In the desert "
-                               "within 6% (the offset +-6%), gaits ranked as paper ranks them (Spearman 0.83 over 8, "
-                               "docs/contact.md section 21)"),
+                               "stress-free start (design optimisation) a third off: confirm a number at paper. "
+                               "In the desert within 6% (the offset +-6%), gaits ranked as paper ranks them "
+                               "(Spearman 0.83 over 8, docs/contact.md section 21)"),
     "paper": Quality(dx=1 / 96, particles_per_cell=8, cfl=0.4, dtype="float32",
                      purpose="figures and final numbers: a gait's distance from rest within 8% of the reference "
                              "and 2% of dx 1/160, the terrain's offset within a cell moving it +-4% "
