@@ -379,7 +379,7 @@ def measure_gradient(s: Setting, params: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------------- registry
-def _robot_sizes(environment: str) -> dict[str, Size]:
+def _robot_sizes() -> dict[str, Size]:
     """One setting at a time around the default preset, plus every quality preset; the finest, the
     `reference` preset (dx 1/128, 27 ppc, cfl 0.2, float64), is the answer. The same settings on
     ground and in the desert (whose sand makes it about 8x the particles: its reference alone takes
@@ -477,7 +477,7 @@ PROBLEMS: dict[str, Problem] = {
 
 def problem_sizes(name: str) -> dict[str, Size]:
     if name.startswith("robot_"):
-        return _robot_sizes(name.removeprefix("robot_"))
+        return _robot_sizes()
     return PROBLEMS[name].sizes
 
 
