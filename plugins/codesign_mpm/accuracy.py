@@ -33,6 +33,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from codesign_mpm.quality import QUALITY, Quality
+
 SIZES = ("quick", "default")
 
 
@@ -43,10 +45,16 @@ class Setting:
     cfl: float = 0.4
     dtype: str = "float32"
     checkpoint_every: Optional[int] = None  # differentiable problems only: substeps between stored states
+    cover_particles_per_cell: Optional[int] = None  # a cover's (the desert's sand); None: particles_per_cell
+
+    @property
+    def cover_ppc(self) -> int:
+        return self.particles_per_cell if self.cover_particles_per_cell is None else self.cover_particles_per_cell
 
     def label(self) -> str:
         ckpt = "" if self.checkpoint_every is None else f", ckpt {self.checkpoint_every}"
-        return (f"dx 1/{round(1 / self.dx)}, {self.particles_per_cell} ppc, cfl {self.cfl:g}, "
+        cover = "" if self.cover_particles_per_cell is None else f" (cover {self.cover_particles_per_cell})"
+        return (f"dx 1/{round(1 / self.dx)}, {self.particles_per_cell} ppc{cover}, cfl {self.cfl:g}, "
                 f"{self.dtype.replace('float', 'f')}{ckpt}")
 
 
@@ -274,7 +282,7 @@ def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[flo
         robot=RobotConfig(youngs_modulus=preset.robot_youngs_modulus, particles_per_cell=s.particles_per_cell,
                           position=[0.35, 0.25], settled=settled))
     if config.cover is not None:
-        config.cover.particles_per_cell = s.particles_per_cell
+        config.cover.particles_per_cell = s.cover_ppc
     return LocomotionEnv(config, preset)
 
 
@@ -379,19 +387,23 @@ def measure_gradient(s: Setting, params: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------------- registry
+def preset_setting(q: Quality) -> Setting:
+    """A quality preset as a Setting (its cover count left None where it is the robot's)."""
+    cover = None if q.cover_particles_per_cell == q.particles_per_cell else q.cover_particles_per_cell
+    return Setting(q.dx, q.particles_per_cell, q.cfl, q.dtype, cover_particles_per_cell=cover)
+
+
 def _robot_sizes() -> dict[str, Size]:
     """One setting at a time around the default preset, plus every quality preset; the finest, the
     `reference` preset (dx 1/128, 27 ppc, cfl 0.2, float64), is the answer. The same settings on
     ground and in the desert (whose sand makes it about 8x the particles: its reference alone takes
     about 45 minutes on 2 cores)."""
-    from codesign_mpm.quality import QUALITY
-
     quick_ref = Setting(dx=1 / 32, cfl=0.2, dtype="float64")
     # 27 particles per cell, not 1: at dx 1/24 one particle per cell leaves the desert's 0.02 layer empty
     quick = sweep(Setting(dx=1 / 24), dx=[1 / 32], particles_per_cell=[27], cfl=[0.8], dtype=["float64"]) + [quick_ref]
     default = sweep(Setting(dx=1 / 48), dx=[1 / 24, 1 / 32, 1 / 64, 1 / 96], particles_per_cell=[1, 27],
                     cfl=[0.2, 0.8], dtype=["float64"])
-    presets = {name: Setting(q.dx, q.particles_per_cell, q.cfl, q.dtype) for name, q in QUALITY.items()}
+    presets = {name: preset_setting(q) for name, q in QUALITY.items()}
     default += [p for p in presets.values() if p not in default]
     return {"quick": Size(quick, quick_ref, dict(seconds=0.25)),
             "default": Size(default, presets["reference"], dict(seconds=1.0))}
@@ -453,10 +465,10 @@ PROBLEMS: dict[str, Problem] = {
               "21). Since, the reference agrees with dx 1/96 at its setting within 2% (6.95 mm): it is converged. "
               "At 8 particles per cell the distance is 6 and 15% over it at dx 1/48 and 1/96 and 14% under at 1/64 "
               "(where the sand is 1.3 cells thick); what is left at dx 1/96 is the particles per cell: the sand's "
-              "alone at 27 instead of 8 brings it to 7.64 mm, 8% over (set cover.particles_per_cell: 27 for a final "
-              "number in sand), and 27 at dx 1/48 moves it 11%. Where the terrain falls within a cell moves it +-6% "
-              "at dx 1/48, +-13% at 1/64 and +-5% at 1/96 (section 21). The robot starts at rest (on the sand it "
-              "had pressed into)."),
+              "alone at 27 instead of 8 brings it to 7.64 mm, 8% over, which is why the paper preset lays its "
+              "covers at 27 (the robot stays at 8), and 27 at dx 1/48 moves it 11%. Where the terrain falls within "
+              "a cell moves it +-6% at dx 1/48, +-13% at 1/64 and +-5% at 1/96 (section 21). The robot starts at "
+              "rest (on the sand it had pressed into)."),
     "gradient": Problem(
         "gradient", "Gradients of the distance: d/d(actions) and d/d(log stiffness)",
         "d distance / d actions (T x K) and d distance / d log E",
@@ -509,6 +521,8 @@ def relative_error(value, answer) -> float:
 def run_problem(name: str, size: str, emit, isolate: bool = True, measured=lambda: None) -> list[dict]:
     """Measure every setting of one problem (calling `measured()` after each), then emit one record
     per setting with its error."""
+    from codesign_mpm.reports import machine_description
+
     spec = problem_sizes(name)[size]
     settings = sorted(spec.settings, key=lambda s: s == spec.reference)  # the reference last
     raw = []
@@ -526,6 +540,7 @@ def run_problem(name: str, size: str, emit, isolate: bool = True, measured=lambd
         row.update(record)
         row["reference"] = spec.reference == setting
         row["process_s"] = round(total, 2)  # including start-up and any kernel compile
+        row["machine"] = machine_description()
         exact = record.get("exact", answer)
         if "value" in record and exact is not None:
             row["answer"] = exact

@@ -245,13 +245,13 @@ class LocomotionConfig:
         if self.robot.particles_per_cell is None:
             self.robot.particles_per_cell = q.particles_per_cell
         if self.cover is not None and self.cover.particles_per_cell is None:
-            self.cover.particles_per_cell = q.particles_per_cell
+            self.cover.particles_per_cell = q.cover_particles_per_cell
 
     def resolved_cover(self, preset: EnvironmentPreset) -> CoverConfig:
         """The cover to lay: this config's, else the preset's, with particles per cell resolved."""
         cover = copy.copy(preset.cover if self.cover is None else self.cover)
         if cover.particles_per_cell is None:
-            cover.particles_per_cell = quality(self.quality).particles_per_cell
+            cover.particles_per_cell = quality(self.quality).cover_particles_per_cell
         return cover
 
 

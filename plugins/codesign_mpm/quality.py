@@ -1,10 +1,11 @@
 """Quality presets: one name for the numerical settings that trade accuracy for time.
 
 `quality: draft | default | paper | reference` in an environment's recipe config (or a scene
-file) sets the grid spacing, particles per cell, CFL number, precision and checkpoint interval
-at once; any of those keys written explicitly overrides the preset. The values were chosen from
-the measured error-against-time fronts of `codesign bench accuracy` (docs/accuracy.md, whose
-preset table is generated from this constant and checked against it by a test).
+file) sets the grid spacing, particles per cell (the robot's and the cover's), CFL number,
+precision and checkpoint interval at once; any of those keys written explicitly overrides the
+preset. The values were chosen from the measured error-against-time fronts of `codesign bench
+accuracy` (docs/accuracy.md, whose preset table is generated from this constant and checked
+against it by a test).
 
 Light on purpose: recipe validation imports it without Taichi.
 """
@@ -17,7 +18,8 @@ from typing import Optional
 @dataclass(frozen=True)
 class Quality:
     dx: float
-    particles_per_cell: int
+    particles_per_cell: int  # the robot's (and any body's but a cover layer)
+    cover_particles_per_cell: int  # the ground cover's (sand, water, snow ...): a cover layer's
     cfl: float
     dtype: str
     checkpoint_every: Optional[int] = None  # substeps between stored states; None: sqrt(T / 2), memory-optimal
@@ -29,13 +31,13 @@ class Quality:
 
 
 QUALITY: dict[str, Quality] = {
-    "draft": Quality(dx=1 / 32, particles_per_cell=8, cfl=0.4, dtype="float32",
+    "draft": Quality(dx=1 / 32, particles_per_cell=8, cover_particles_per_cell=8, cfl=0.4, dtype="float32",
                      purpose="smoke tests, recipe debugging, quick sweeps (the quick start's grid); cfl 0.8 "
                              "blows up far earlier in docs/stability.md. A gait's distance from rest is a quarter "
                              "off and fast gaits move differently: not for rankings (Spearman 0.38 against paper "
                              "over 8 random gaits, docs/contact.md section 17); in the desert a third under the "
                              "reference (its 0.02 of sand is 0.64 cells thick)"),
-    "default": Quality(dx=1 / 48, particles_per_cell=8, cfl=0.4, dtype="float32",
+    "default": Quality(dx=1 / 48, particles_per_cell=8, cover_particles_per_cell=8, cfl=0.4, dtype="float32",
                        purpose="the settings every recipe had before presets (kept so that results do not move); "
                                "day-to-day optimisation at one fixed setting. A gait's distance from rest within "
                                "8% of the reference (the terrain's offset within a cell moves it +-15%), gaits "
@@ -43,14 +45,16 @@ QUALITY: dict[str, Quality] = {
                                "stress-free start (design optimisation) a third off: confirm a number at paper. "
                                "In the desert within 6% (the offset +-6%), gaits ranked as paper ranks them "
                                "(Spearman 0.83 over 8, docs/contact.md section 21)"),
-    "paper": Quality(dx=1 / 96, particles_per_cell=8, cfl=0.4, dtype="float32",
+    "paper": Quality(dx=1 / 96, particles_per_cell=8, cover_particles_per_cell=27, cfl=0.4, dtype="float32",
                      purpose="figures and final numbers: a gait's distance from rest within 8% of the reference "
                              "and 2% of dx 1/160, the terrain's offset within a cell moving it +-4% "
                              "(docs/contact.md section 17); from a stress-free start the offset moves it about "
                              "15% (section 13): compare designs on one terrain, or set terrain.contact: surface "
-                             "with cfl 0.2 (section 15). In the desert 15% over the reference (the offset +-5%); set "
-                             "cover.particles_per_cell: 27 for a final number there (8% over; section 21)"),
-    "reference": Quality(dx=1 / 128, particles_per_cell=27, cfl=0.2, dtype="float64",
+                             "with cfl 0.2 (section 15). In the desert 8% over the reference (the offset +-5%) with "
+                             "the cover at 27 particles per cell (at 8 it was 15% over; section 21), which costs 3x the "
+                             "sand's particles and 3.4x the ocean's water (1.5 M particles; its swim moved 4 to 7% "
+                             "between 8 and 27 at dx 1/48, section 22); set cover.particles_per_cell: 8 to save it"),
+    "reference": Quality(dx=1 / 128, particles_per_cell=27, cover_particles_per_cell=27, cfl=0.2, dtype="float64",
                          purpose="the finest setting measured: the answer the others are compared with. On ground from "
                                  "rest it agrees with dx 1/160 within 6% (docs/contact.md section 17), from a "
                                  "stress-free start it has no limit (section 13); in the desert it agrees with dx "

@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from codesign.errors import CodesignError
-from codesign_mpm.quality import QUALITY
+from codesign_mpm.quality import QUALITY, Quality
 from codesign_mpm.sampling import build_particles
 from codesign_mpm.scene import BodySpec, Scene, SceneError, validate_scene
 
@@ -54,8 +54,8 @@ def load_scene(path: str | Path) -> Scene:
             raise SceneFileError(f"{path}: quality: {name!r} is not a quality preset; allowed: {', '.join(QUALITY)}")
         preset = QUALITY[name]
         data = {"dx": preset.dx, "cfl": preset.cfl, "dtype": preset.dtype, **data}
-        bodies = [{"particles_per_cell": preset.particles_per_cell, **body} if isinstance(body, dict) else body
-                  for body in bodies]
+        bodies = [{"particles_per_cell": _preset_particles_per_cell(preset, body), **body}
+                  if isinstance(body, dict) else body for body in bodies]
     scene = _structured(Scene, data, "", path)
     scene.bodies = [_structured(BodySpec, body, f"bodies[{i}].", path) for i, body in enumerate(bodies)]
     try:
@@ -63,6 +63,13 @@ def load_scene(path: str | Path) -> Scene:
     except SceneError as exc:
         raise SceneFileError(f"{path}: {exc}") from None
     return scene
+
+
+def _preset_particles_per_cell(preset: Quality, body: dict) -> int:
+    """A layer (a ground cover) takes the preset's cover count, any other body the robot's."""
+    shape = body.get("shape")
+    is_layer = isinstance(shape, dict) and shape.get("kind") == "layer"
+    return preset.cover_particles_per_cell if is_layer else preset.particles_per_cell
 
 
 @dataclass

@@ -15,15 +15,16 @@ DOC = Path(__file__).resolve().parents[2] / "docs" / "accuracy.md"
 
 
 def documented_presets() -> dict[str, dict]:
-    """The preset table of docs/accuracy.md: name -> dx, particles per cell, cfl, dtype, checkpoint every."""
+    """The preset table of docs/accuracy.md: name -> dx, particles per cell (robot, cover), cfl, dtype,
+    checkpoint every."""
     rows = {}
     for line in DOC.read_text().splitlines():
-        m = re.match(r"\| `(\w+)` \| 1/(\d+) \| (\d+) \| ([\d.]+) \| (float\d+) \| ([^|]+) \|", line)
+        m = re.match(r"\| `(\w+)` \| 1/(\d+) \| (\d+) \| (\d+) \| ([\d.]+) \| (float\d+) \| ([^|]+) \|", line)
         if m:
-            every = m.group(6).strip()
+            every = m.group(7).strip()
             rows[m.group(1)] = dict(dx=1 / int(m.group(2)), particles_per_cell=int(m.group(3)),
-                                    cfl=float(m.group(4)), dtype=m.group(5),
-                                    checkpoint_every=None if every.startswith("auto") else int(every))
+                                    cover_particles_per_cell=int(m.group(4)), cfl=float(m.group(5)),
+                                    dtype=m.group(6), checkpoint_every=None if every.startswith("auto") else int(every))
     return rows
 
 
@@ -36,7 +37,8 @@ def test_each_preset_resolves_to_the_documented_settings():
         assert config.dx == pytest.approx(settings["dx"])
         assert (config.cfl, config.dtype, config.checkpoint_every) == (
             settings["cfl"], settings["dtype"], settings["checkpoint_every"])
-        assert config.robot.particles_per_cell == config.cover.particles_per_cell == settings["particles_per_cell"]
+        assert config.robot.particles_per_cell == settings["particles_per_cell"]
+        assert config.cover.particles_per_cell == settings["cover_particles_per_cell"]
 
 
 def test_the_default_preset_keeps_the_settings_recipes_had_before_presets():
@@ -50,7 +52,7 @@ def test_explicit_keys_override_the_preset_in_a_recipe():
                                               "robot": {"particles_per_cell": 1}, "cfl": 0.5})
     config, reference = section.config, QUALITY["reference"]
     assert (config.dx, config.cfl, config.robot.particles_per_cell) == (0.05, 0.5, 1)
-    assert (config.dtype, config.cover.particles_per_cell) == (reference.dtype, reference.particles_per_cell)
+    assert (config.dtype, config.cover.particles_per_cell) == (reference.dtype, reference.cover_particles_per_cell)
 
 
 def test_an_unknown_preset_is_a_recipe_error_listing_the_allowed_names():
@@ -72,3 +74,13 @@ def test_a_scene_file_takes_a_preset_and_its_own_keys_win(tmp_path):
     path.write_text("quality: best\nbodies: []\n")
     with pytest.raises(SceneFileError, match="quality: 'best'.*allowed: draft, default, paper, reference"):
         load_scene(path)
+
+
+def test_a_scene_files_layer_takes_the_presets_cover_count(tmp_path):
+    path = tmp_path / "scene.yaml"
+    path.write_text("quality: paper\nbodies:\n  - shape: {kind: box, size: [0.1, 0.1, 0.1]}\n"
+                    "  - shape: {kind: layer, thickness: 0.02}\n")
+    paper = QUALITY["paper"]
+    assert paper.cover_particles_per_cell != paper.particles_per_cell  # else this test cannot tell them apart
+    scene = load_scene(path)
+    assert [b.particles_per_cell for b in scene.bodies] == [paper.particles_per_cell, paper.cover_particles_per_cell]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from codesign_mpm.accuracy import PROBLEMS, run_accuracy_bench
-from codesign_mpm.reports import pareto_front, write_accuracy_report, write_stability_report
+from codesign_mpm.reports import machine_description, pareto_front, write_accuracy_report, write_stability_report
 from codesign_mpm.stability import CASES, passed, run_stability_bench
 
 
@@ -38,6 +38,7 @@ def test_quick_accuracy_of_the_bar_writes_a_report(tmp_path):
     doc = write_accuracy_report(rows, tmp_path)
     text = doc.read_text()
     assert "## Quality presets" in text and "![bar" in text and "**yes**" in text
+    assert f"{len(rows)} records measured on {machine_description()}" in text  # each record names its machine
     assert (tmp_path / "images" / "accuracy_bar.png").stat().st_size > 1000
     assert len((tmp_path / "data" / "accuracy-quick.jsonl").read_text().splitlines()) == len(rows)
 
