@@ -50,10 +50,11 @@ QUALITY: dict[str, Quality] = {
                              "and 2% of dx 1/160, the terrain's offset within a cell moving it +-4% "
                              "(docs/contact.md section 17); from a stress-free start the offset moves it about "
                              "15% (section 13): compare designs on one terrain, or set terrain.contact: surface "
-                             "with cfl 0.2 (section 15). In the desert 8% over the reference (the offset +-5%) with "
-                             "the cover at 27 particles per cell (at 8 it was 15% over; section 21), which costs 3x the "
-                             "sand's particles and 3.4x the ocean's water (1.5 M particles; its swim moved 4 to 7% "
-                             "between 8 and 27 at dx 1/48, section 22); set cover.particles_per_cell: 8 to save it"),
+                             "with cfl 0.2 (section 15). In the desert 8% over the reference (the offset +-5%) "
+                             "with the cover at 27 particles per cell (at 8 it was 15% over; section 21), which "
+                             "costs 3x the sand's particles and 3.4x the ocean's water (1.5 M particles; its swim "
+                             "moved 4 to 7% between 8 and 27 at dx 1/48, section 22); set "
+                             "cover.particles_per_cell: 8 to save it"),
     "reference": Quality(dx=1 / 128, particles_per_cell=27, cover_particles_per_cell=27, cfl=0.2, dtype="float64",
                          purpose="the finest setting measured: the answer the others are compared with. On ground from "
                                  "rest it agrees with dx 1/160 within 6% (docs/contact.md section 17), from a "
