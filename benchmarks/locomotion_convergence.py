@@ -85,11 +85,12 @@ def random_gait(seed: int):
 def ranking(gaits: int, arch: str, contact: str, settled: bool, environment: str = "ground") -> list[dict]:
     """Each random gait's distance at the draft, default and paper presets, and Spearman's rho
     between the presets' rankings."""
+    from codesign_mpm.accuracy import preset_setting
     from codesign_mpm.quality import QUALITY
 
     distances = {}
     for name in ("draft", "default", "paper"):
-        env = robot_env(environment, Setting(dx=QUALITY[name].dx, cfl=QUALITY[name].cfl), FRAMES, arch=arch,
+        env = robot_env(environment, preset_setting(QUALITY[name]), FRAMES, arch=arch,
                         contact=contact, settled=settled)  # one per preset: its rest is found once
         distances[name] = [walk(env, random_gait(seed))["distance"] for seed in range(gaits)]
         env.close()
