@@ -43,8 +43,8 @@ QUALITY: dict[str, Quality] = {
                                "8% of the reference (the terrain's offset within a cell moves it +-15%), gaits "
                                "ranked as paper ranks them (Spearman 0.90 over 8 random gaits); from a "
                                "stress-free start (design optimisation) a third off: confirm a number at paper. "
-                               "In the desert within 6% (the offset +-6%), gaits ranked as paper ranks them "
-                               "(Spearman 0.83 over 8, docs/contact.md section 21)"),
+                               "In the desert within 6% (the offset +-6%); gaits that clearly move ranked as paper "
+                               "ranks them, near-still ones not (Spearman 0.69 over 8, docs/contact.md section 22)"),
     "paper": Quality(dx=1 / 96, particles_per_cell=8, cover_particles_per_cell=27, cfl=0.4, dtype="float32",
                      purpose="figures and final numbers: a gait's distance from rest within 8% of the reference "
                              "and 2% of dx 1/160, the terrain's offset within a cell moving it +-4% "
