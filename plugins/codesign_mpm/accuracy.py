@@ -523,6 +523,7 @@ def run_problem(name: str, size: str, emit, isolate: bool = True, measured=lambd
     per setting with its error."""
     from codesign_mpm.reports import machine_description
 
+    machine = machine_description()
     spec = problem_sizes(name)[size]
     settings = sorted(spec.settings, key=lambda s: s == spec.reference)  # the reference last
     raw = []
@@ -540,7 +541,7 @@ def run_problem(name: str, size: str, emit, isolate: bool = True, measured=lambd
         row.update(record)
         row["reference"] = spec.reference == setting
         row["process_s"] = round(total, 2)  # including start-up and any kernel compile
-        row["machine"] = machine_description()
+        row["machine"] = machine
         exact = record.get("exact", answer)
         if "value" in record and exact is not None:
             row["answer"] = exact
