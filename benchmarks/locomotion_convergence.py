@@ -10,6 +10,7 @@ Prints JSON lines (and appends them to --out); docs/contact.md reads them.
     python benchmarks/locomotion_convergence.py ground --arch cuda --out records.jsonl
     python benchmarks/locomotion_convergence.py floating
     python benchmarks/locomotion_convergence.py ranking --gaits 5
+    python benchmarks/locomotion_convergence.py ranking --environment desert --presets paper --gaits 24 --arch cuda
     python benchmarks/locomotion_convergence.py reference --environment desert --resolutions 64 96 128 --arch cuda
     python benchmarks/locomotion_convergence.py offsets --resolutions 48 96 --frictions 0.5 5
     python benchmarks/locomotion_convergence.py offsets --resolutions 32 48 --frictions 0.5 --contact surface
@@ -21,6 +22,7 @@ import argparse
 import json
 import math
 import time
+from collections.abc import Iterator
 
 import numpy as np
 from scipy.stats import spearmanr
@@ -82,22 +84,36 @@ def random_gait(seed: int):
     return lambda frame, k: 0.3 * np.sin(2 * math.pi * hz * frame * 8e-3 + phases)[:k]
 
 
-def ranking(gaits: int, arch: str, contact: str, settled: bool, environment: str = "ground") -> list[dict]:
-    """Each random gait's distance at the draft, default and paper presets, and Spearman's rho
-    between the presets' rankings."""
+PRESETS = ("draft", "default", "paper")
+
+
+def ranking(seeds: range, arch: str, contact: str, settled: bool, environment: str = "ground",
+            presets: tuple[str, ...] = PRESETS) -> Iterator[dict]:
+    """Each random gait's distance at each preset, one record per gait as it is measured (so the
+    presets or the seeds can be split between machines), then Spearman's rho between the presets'
+    rankings (`spearman_records`)."""
     from codesign_mpm.accuracy import preset_setting
     from codesign_mpm.quality import QUALITY
 
     distances = {}
-    for name in ("draft", "default", "paper"):
+    for name in presets:
         env = robot_env(environment, preset_setting(QUALITY[name]), FRAMES, arch=arch,
                         contact=contact, settled=settled)  # one per preset: its rest is found once
-        distances[name] = [walk(env, random_gait(seed))["distance"] for seed in range(gaits)]
+        distances[name] = []
+        for seed in seeds:
+            record = walk(env, random_gait(seed))
+            distances[name].append(record["distance"])
+            yield dict(environment=environment, preset=name, seed=seed, arch=arch, **record)
         env.close()
-    records = [dict(environment=environment, preset=name, distances=d) for name, d in distances.items()]
-    for a, b in (("draft", "paper"), ("default", "paper"), ("draft", "default")):
-        records.append(dict(spearman=f"{a}-{b}", rho=float(spearmanr(distances[a], distances[b]).statistic)))
-    return records
+    yield from spearman_records(distances)
+
+
+def spearman_records(distances: dict[str, list[float]]) -> list[dict]:
+    """Spearman's rho between each pair of presets' distances (the same gaits, in the same order)."""
+    names = list(distances)
+    return [dict(spearman=f"{a}-{b}", rho=float(spearmanr(distances[a], distances[b]).statistic),
+                 gaits=len(distances[a]))
+            for i, a in enumerate(names) for b in names[i + 1:]]
 
 
 def reference(environment: str, n: int, arch: str, seconds: float, contact: str, settled: bool) -> dict:
@@ -133,6 +149,9 @@ def main() -> None:
     parser.add_argument("--resolutions", type=int, nargs="+", default=list(RESOLUTIONS), help="1 / dx")
     parser.add_argument("--seconds", type=float, default=1.0, help="reference: simulated time")
     parser.add_argument("--gaits", type=int, default=5, help="ranking: random gaits to rank")
+    parser.add_argument("--first-seed", type=int, default=0, help="ranking: the first gait's seed")
+    parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=list(PRESETS),
+                        help="ranking: the quality presets to rank at")
     parser.add_argument("--arch", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--contact", default="nodes", choices=["nodes", "surface"], help="the terrain's contact")
     parser.add_argument("--start", default="settled", choices=["settled", "stress-free"],
@@ -150,7 +169,8 @@ def main() -> None:
                 f.write(line + "\n")
 
     if args.study == "ranking":
-        for record in ranking(args.gaits, args.arch, args.contact, settled, args.environment):
+        seeds = range(args.first_seed, args.first_seed + args.gaits)
+        for record in ranking(seeds, args.arch, args.contact, settled, args.environment, tuple(args.presets)):
             emit(record)
         return
     if args.study == "reference":
