@@ -283,14 +283,16 @@ def run_stability_bench(cases: list[str], size: str, emit, isolate: bool = True,
                         progress: bool = True) -> list[dict]:
     """Emit one JSON object per (case, setting); returns them all."""
     from codesign.progress import progress_bar
+    from codesign_mpm.reports import machine_description
 
+    machine = machine_description()
     rows = []
     runs = [(name, s) for name in cases for s in CASES[name].sizes[size].settings]
     for name, s in progress_bar(runs, desc="bench stability", unit="run", show=progress):
         t0 = time.perf_counter()
         record = _isolated(name, size, s) if isolate else run_case(name, size, s)
         row = dict(measure="stability", case=name, size=size, setting=s.label(), **asdict(s), **record,
-                   process_s=round(time.perf_counter() - t0, 2))
+                   process_s=round(time.perf_counter() - t0, 2), machine=machine)
         emit(row)
         rows.append(row)
     return rows

@@ -84,6 +84,7 @@ def test_quick_stability_of_two_cases_writes_a_report(tmp_path):
     check_stability_rows(rows)
     text = write_stability_report(rows, tmp_path).read_text()
     assert all(f"## `{c}`" in text for c in cases)
+    assert f"2 records measured on {machine_description()}" in text  # each record names its machine
 
 
 @pytest.mark.slow
