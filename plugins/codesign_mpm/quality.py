@@ -34,17 +34,18 @@ QUALITY: dict[str, Quality] = {
     "draft": Quality(dx=1 / 32, particles_per_cell=8, cover_particles_per_cell=8, cfl=0.4, dtype="float32",
                      purpose="smoke tests, recipe debugging, quick sweeps (the quick start's grid); cfl 0.8 "
                              "blows up far earlier in docs/stability.md. A gait's distance from rest is a quarter "
-                             "off and fast gaits move differently: not for rankings (Spearman 0.38 against paper "
-                             "over 8 random gaits, docs/contact.md section 17); in the desert a third under the "
-                             "reference (its 0.02 of sand is 0.64 cells thick)"),
+                             "off and fast gaits move differently; it ranks 24 random gaits roughly as paper does "
+                             "(Spearman 0.79 on ground, 0.80 in sand, docs/contact.md section 23): not for final "
+                             "rankings; in the desert a third under the reference (its 0.02 of sand is 0.64 cells "
+                             "thick)"),
     "default": Quality(dx=1 / 48, particles_per_cell=8, cover_particles_per_cell=8, cfl=0.4, dtype="float32",
                        purpose="the settings every recipe had before presets (kept so that results do not move); "
                                "day-to-day optimisation at one fixed setting. A gait's distance from rest within "
                                "8% of the reference (the terrain's offset within a cell moves it +-15%), gaits "
-                               "ranked as paper ranks them (Spearman 0.90 over 8 random gaits); from a "
-                               "stress-free start (design optimisation) a third off: confirm a number at paper. "
-                               "In the desert within 6% (the offset +-6%); gaits that clearly move ranked as paper "
-                               "ranks them, near-still ones not (Spearman 0.69 over 8, docs/contact.md section 22)"),
+                               "ranked as paper ranks them (Spearman 0.90 over 24 random gaits, docs/contact.md "
+                               "section 23); from a stress-free start (design optimisation) a third off: confirm a "
+                               "number at paper. In the desert within 6% (the offset +-6%), gaits ranked as paper "
+                               "ranks them (Spearman 0.92 over 24; gaits that move under a millimetre swap)"),
     "paper": Quality(dx=1 / 96, particles_per_cell=8, cover_particles_per_cell=27, cfl=0.4, dtype="float32",
                      purpose="figures and final numbers: a gait's distance from rest within 8% of the reference "
                              "and 2% of dx 1/160, the terrain's offset within a cell moving it +-4% "
