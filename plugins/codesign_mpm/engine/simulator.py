@@ -305,7 +305,7 @@ class Simulator:
         self._put(k.muscle, (p.muscle if self.n_actuators else np.zeros((self.n, 1))).astype(r))
         self._put(k.fiber, self._unit_fiber.astype(r))
         self._put(k.muscle_ratio, p.muscle_ratio.astype(r))
-        wave0, added = wave_speeds(self.scene, p)
+        wave0, added = self._waves
         self._put(k.wave0, wave0.astype(r))
         self._put(k.wave_added, added.astype(r))
         if k.has_params:
@@ -330,6 +330,7 @@ class Simulator:
         self._unit_fiber, self._fiber_length = _unit_fibers(particles.fiber)
         self.particles = replace(particles, **{name: np.array(getattr(particles, name), copy=True)
                                                for name in Particles.__dataclass_fields__})
+        self._waves = wave_speeds(self.scene, self.particles)  # once per design, not per reset
         self.timestep = timestep
         self._set_dt(timestep.dt)
 
