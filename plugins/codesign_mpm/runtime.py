@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import weakref
 
 import taichi as ti
 
@@ -14,6 +15,28 @@ POSITION_CACHE_LIMIT = 200_000
 
 _current: tuple[str, str] | None = None
 generation = 0  # bumped on every re-initialisation; simulators built before it are dead
+_ndarrays: "weakref.WeakSet[ti.Ndarray]" = weakref.WeakSet()  # this program's live ndarrays
+_outlived: list = []  # ndarrays of ended programs, never to be collected (see `ndarray`)
+
+
+def ndarray(dtype, shape: tuple[int, ...]) -> "ti.Ndarray":
+    """A Taichi ndarray that is safe to outlive its program.
+
+    Collecting a Taichi ndarray asks the *current* program to free it by its address; after a
+    reset that address can belong to a live ndarray of the new program, which is then freed
+    under its owner (Taichi 1.7: memory reused behind a simulator's back, or a segmentation
+    fault). So the ndarrays still alive when a program ends are kept from collection; their
+    memory went with their program."""
+    array = ti.ndarray(dtype, shape)
+    _ndarrays.add(array)
+    return array
+
+
+def _end_program() -> None:
+    """`ti.reset()`, keeping this program's surviving ndarrays from ever being collected."""
+    _outlived.extend(_ndarrays)
+    _ndarrays.clear()
+    ti.reset()
 
 
 def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
@@ -28,7 +51,7 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
         return
     _memoize_source_positions()
     if _current is not None:
-        ti.reset()
+        _end_program()
     arch_obj = {"cpu": ti.cpu, "cuda": ti.cuda, "gpu": ti.gpu, "vulkan": ti.vulkan, "metal": ti.metal}[arch]
     cache_dir = os.environ.get("CODESIGN_TAICHI_CACHE")  # default: Taichi's own (~/.cache/taichi)
     ti.init(
@@ -113,6 +136,6 @@ def reset() -> None:
     """
     global _current, generation
     if _current is not None:
-        ti.reset()
+        _end_program()
         _current = None
         generation += 1

@@ -1,4 +1,7 @@
 """codesign_mpm.runtime: Taichi set up once, its frontend's source excerpts formatted once per place."""
+import gc
+import weakref
+
 import pytest
 import taichi as ti
 from taichi.lang.ast import ast_transformer_utils
@@ -30,4 +33,28 @@ def test_a_compile_error_still_quotes_the_line_at_fault_with_excerpts_kept():
             kernel()
         assert f"field[{0 if name.endswith('first') else 1}] = {name}" in str(info.value)
         assert "^" in str(info.value)  # the excerpt's underline
+    runtime.reset()
+
+
+def test_ndarrays_outliving_their_program_are_never_collected():
+    """Taichi frees a collected ndarray by its address in the *current* program, so an ndarray of an
+    ended program (a simulator collected after a dtype switch, or after a module's fresh program) can
+    free a live ndarray of the new program that took the same address: memory reused under a live
+    simulator, seen as a segfault in a backward pass. Such ndarrays must never be collected."""
+    runtime.init_taichi("cpu", "float32")
+    shape = (64,)
+    old = [runtime.ndarray(ti.f32, shape) for _ in range(2000)]
+    watch = weakref.ref(old[0])
+    runtime.reset()  # a new program
+    runtime.init_taichi("cpu", "float32")
+    live = [runtime.ndarray(ti.f32, shape) for _ in range(2000)]
+    for array in live:
+        array.fill(1.0)
+    del old
+    gc.collect()
+    assert watch() is not None
+    later = [runtime.ndarray(ti.f32, shape) for _ in range(2000)]  # would take freed memory
+    for array in later:
+        array.fill(7.0)
+    assert all((array.to_numpy() == 1.0).all() for array in live)  # without the guard: 1-4 of 2000 not
     runtime.reset()

@@ -703,8 +703,8 @@ class Simulator:
                         GRID_STORE_BYTES // (self.segment * self.k.part_width * np.dtype(self.np_real).itemsize))
         shape = (self.segment, max(nodes, 1), self.k.part_width)
         if self._grid_store is None or self._grid_store.shape != shape:
-            self._grid_store = ti.ndarray(ti.f64 if self.np_real is np.float64 else ti.f32, shape)
-            self._grid_boxes = ti.ndarray(ti.i32, (self.segment, 7))
+            self._grid_store = runtime.ndarray(ti.f64 if self.np_real is np.float64 else ti.f32, shape)
+            self._grid_boxes = runtime.ndarray(ti.i32, (self.segment, 7))
 
     @property
     def rollout_is_current(self) -> bool:
