@@ -12,7 +12,9 @@ Supported metadata: ``gt``, ``ge``, ``lt``, ``le``, ``choices`` (applied to each
 element when the field is a list) and ``min_len`` (lists). Supported types:
 bool, int, float, str, Any, ``Optional``/unions, ``Literal``, ``list[T]``,
 ``dict[str, T]`` and nested dataclasses. A field with no default (or the
-OmegaConf ``"???"`` default) is required.
+OmegaConf ``"???"`` default) is required. A nested dataclass given in part keeps
+its field's own default for the keys it leaves out (e.g. an environment preset's
+robot stiffness when a recipe sets only the robot's size).
 
 OmegaConf's own structured-config checks lose key paths inside lists of
 dataclasses and know no ranges or choices, so validation is done here; every
@@ -111,7 +113,7 @@ def _dataclass(cls: type, data: Any, path: str, problems: list[Problem]) -> Any:
     for name, f in fields.items():
         sub = join(path, name)
         if name in data:
-            value = _value(hints[name], data[name], sub, f.metadata, problems)
+            value = _value(hints[name], _over_default(f, data[name]), sub, f.metadata, problems)
             if value is not _INVALID:
                 kwargs[name] = value
         elif is_required(f):
@@ -119,6 +121,25 @@ def _dataclass(cls: type, data: Any, path: str, problems: list[Problem]) -> Any:
     if len(problems) > before:
         return _INVALID
     return cls(**kwargs)
+
+
+def _over_default(f: dataclasses.Field, given: Any) -> Any:
+    """`given` merged over the field's default when both are mappings (the default a dataclass),
+    so a partly given section changes only what it names."""
+    if not isinstance(given, Mapping):
+        return given
+    default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+    if not dataclasses.is_dataclass(default) or isinstance(default, type):
+        return given
+    return _deep_merge(dataclasses.asdict(default), given)
+
+
+def _deep_merge(base: dict, over: Mapping) -> dict:
+    merged = dict(base)
+    for key, value in over.items():
+        inner = merged.get(key)
+        merged[key] = _deep_merge(inner, value) if isinstance(inner, dict) and isinstance(value, Mapping) else value
+    return merged
 
 
 def _value(tp: Any, value: Any, path: str, meta: Mapping, problems: list[Problem]) -> Any:

@@ -154,3 +154,17 @@ def test_a_differentiable_episode_of_a_design_smaller_than_its_workspace_takes_t
         assert np.isfinite(grad).all() and np.abs(grad[corner]).max() > 0 and (grad[~corner] == 0).all()
     finally:
         env.close()
+
+
+def test_a_recipe_setting_part_of_the_robot_or_cover_keeps_the_environments_own_defaults():
+    """Giving `environment.robot.size` once replaced the ocean's robot (E 1e5) by the generic one
+    (E 1e4), and `environment.cover.thickness` the ocean's water by no cover at all."""
+    from codesign.recipe import resolve_recipe
+
+    data = {"environment": {"name": "ocean", "robot": {"size": [0.3, 0.15, 0.15]}, "cover": {"thickness": 0.2}},
+            "representation": {"name": "particle"}, "controller": {"name": "sine"}, "optimizer": {"name": "evaluate"}}
+    config = resolve_recipe(data).sections["environment"].config
+    assert config.robot.youngs_modulus == 1e5 and config.robot.size == [0.3, 0.15, 0.15]
+    assert config.cover.kind == "water" and config.cover.thickness == 0.2
+    data["environment"]["robot"]["youngs_modulus"] = 3e4  # what is given still wins
+    assert resolve_recipe(data).sections["environment"].config.robot.youngs_modulus == 3e4
