@@ -45,6 +45,7 @@ class Arm:
     label: str
     set: dict[str, Any] = field(default_factory=dict)  # dotted recipe key -> value, merged into the base
     paper: float | None = None
+    seeds: tuple[int, ...] | None = None  # its own seeds (an arm whose runs do not depend on the seed: one)
 
     @property
     def slug(self) -> str:
@@ -183,12 +184,16 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
     arms = []
     parameters = {**(spec.get("parameters") or {}), **(scales.get(scale, {}).get("parameters") or {})}
     for i, arm in enumerate(spec.get("arms") or []):
-        unknown = set(arm) - {"label", "set", "paper", "scales"}
+        unknown = set(arm) - {"label", "set", "paper", "scales", "seeds"}
         if "label" not in arm or unknown:
-            raise RecipeError(f"invalid {where}: study.arms[{i}]: needs 'label' and takes set, paper, scales"
+            raise RecipeError(f"invalid {where}: study.arms[{i}]: needs 'label' and takes set, paper, scales, seeds"
                               + (f"; unknown {', '.join(sorted(unknown))}" if unknown else ""))
         changes = {**(arm.get("set") or {}), **((arm.get("scales") or {}).get(scale) or {})}
-        arms.append(Arm(arm["label"], changes, arm.get("paper")))
+        own = arm.get("seeds")
+        if own is not None and (not isinstance(own, list) or not own or not all(isinstance(v, int) for v in own)):
+            raise RecipeError(f"invalid {where}: study.arms[{i}].seeds: {own!r}; give a non-empty list of integers")
+        chosen = (tuple(v for v in own if v in seeds) or seeds[:1]) if own is not None else None
+        arms.append(Arm(arm["label"], changes, arm.get("paper"), chosen))
     prepare = None
     if spec.get("prepare") is not None:
         changes = {**(spec["prepare"].get("set") or {}), **((spec["prepare"].get("scales") or {}).get(scale) or {})}
@@ -223,8 +228,13 @@ def arm_recipe(study: Study, arm: Arm, root: Path = Path(STUDIES_DIR)) -> dict:
         data["init_controller"] = str(root / PREPARE_DIR)
     data["name"] = f"{study.name}-{arm.slug}"
     data["sweep"] = {"method": "grid", "metric": {"name": "best.episode_return", "goal": "maximize"},
-                     "parameters": {"seed": {"values": list(study.seeds)}}}
+                     "parameters": {"seed": {"values": list(arm_seeds(study, arm))}}}
     return data
+
+
+def arm_seeds(study: Study, arm: Arm) -> tuple[int, ...]:
+    """The seeds an arm runs: its own (those of them the scale runs, at least the scale's first), else the study's."""
+    return arm.seeds or study.seeds
 
 
 def still_recipe(study: Study, arm: Arm) -> dict:
@@ -234,7 +244,7 @@ def still_recipe(study: Study, arm: Arm) -> dict:
     data = arm_recipe(study, arm)
     for key in ("sweep", "init_controller"):
         data.pop(key, None)
-    data.update(name=f"{study.name}-{arm.slug}-{STILL_DIR}", seed=study.seeds[0],
+    data.update(name=f"{study.name}-{arm.slug}-{STILL_DIR}", seed=arm_seeds(study, arm)[0],
                 optimizer={"name": "evaluate", "episodes": 1},
                 controller={"name": "sine", "init_std": 0.0})  # zero weights and biases: every action is 0
     return data
@@ -423,6 +433,9 @@ def _analysis(ref: str) -> Callable[[Study, Path, bool], str]:
 def _heading(study: Study) -> str:
     command = f"`codesign study {study.name}`" + ("" if study.scale == SCALE_DEFAULT else f" --scale {study.scale}")
     count = "" if study.analysis else f": {len(study.seeds)} seed{'s' if len(study.seeds) > 1 else ''} per arm"
+    fewer = sorted({len(arm.seeds) for arm in study.arms if arm.seeds is not None and len(arm.seeds) < len(study.seeds)})
+    if fewer and not study.analysis:
+        count += f" ({' or '.join(map(str, fewer))} for the arms whose runs do not depend on the seed)"
     return f"## {study.title}\n\n{command}{count}. Paper: {study.paper}\n\n"
 
 
@@ -433,8 +446,9 @@ def _differs(study: Study) -> str:
 def section(study: Study, rows: list[Row]) -> str:
     parts = [table_markdown(rows), verdict(rows), f"![{study.name}]({study.name}.png)"]
     runs = sum(len(r.per_step) for r in rows)
-    if runs < len(study.arms) * len(study.seeds):
-        parts.insert(0, f"**Under way**: {runs} of {len(study.arms) * len(study.seeds)} runs finished "
+    planned = sum(len(arm_seeds(study, arm)) for arm in study.arms)
+    if runs < planned:
+        parts.insert(0, f"**Under way**: {runs} of {planned} runs finished "
                         f"({len(rows)} of {len(study.arms)} arms have at least one).")
     body = "\n\n".join(parts)
     return _heading(study) + body + "\n" + _differs(study)

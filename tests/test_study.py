@@ -105,6 +105,28 @@ def test_an_arm_with_an_unknown_key_is_an_error_naming_it(tmp_path, toy_study):
         load_study(str(toy_study))
 
 
+def test_an_arm_whose_runs_do_not_depend_on_the_seed_can_run_one(tmp_path, toy_study, cli):
+    """`seeds` on an arm: its own seeds (those the scale runs; else the scale's first), the table
+    counting its runs; a bad value names the key."""
+    data = yaml.safe_load(toy_study.read_text())
+    data["study"]["arms"][1]["seeds"] = [1]
+    toy_study.write_text(yaml.safe_dump(data))
+    assert [arm.seeds for arm in load_study(str(toy_study)).arms] == [None, (1,)]
+    assert load_study(str(toy_study), "tiny").arms[1].seeds == (3,)  # the tiny scale runs seed 3 alone
+    code, out, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
+    assert code == 0, err
+    root = Path(out.strip())
+    assert [p.name for p in sorted((root / "tight_bound").glob("t*-seed*"))] == ["t000-seed1"]
+    rows = {r["arm"]: r for r in csv.DictReader((root / "table.csv").open())}
+    assert (rows["Loose bound"]["seeds"], rows["Tight bound"]["seeds"]) == ("2", "1")
+    section = (root / "section.md").read_text()
+    assert "Under way" not in section and "(1 for the arms whose runs do not depend on the seed)" in section
+    data["study"]["arms"][1]["seeds"] = "one"
+    toy_study.write_text(yaml.safe_dump(data))
+    with pytest.raises(RecipeError, match=r"study.arms\[1\].seeds: 'one'; give a non-empty list of integers"):
+        load_study(str(toy_study))
+
+
 def _row(label: str, paper: float, values: tuple[float, ...]) -> Row:
     return Row(Arm(label, paper=paper), values, (0.0,) * len(values), (1.0,) * len(values))
 
