@@ -62,10 +62,11 @@ class Study:
     arms: tuple[Arm, ...]
     recipe: dict  # the base recipe, shared by every arm
     scale: str
-    prepare: Arm | None = None  # a run made first (first seed), whose best controller every arm starts from
+    prepare: Arm | None = None  # a run made first (first seed), whose best controller arms start from
     analysis: str | None = None  # "module:function" measuring one robot instead of arms (codesign_mpm.analyses)
     parameters: dict = field(default_factory=dict)  # the analysis's own settings
     still: bool = True  # also play each arm's starting design without any action (the return of doing nothing)
+    prepared_arms: tuple[str, ...] | None = None  # labels of the arms that start from `prepare` (None: all)
 
 
 @dataclass(frozen=True)
@@ -198,10 +199,18 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
     if spec.get("prepare") is not None:
         changes = {**(spec["prepare"].get("set") or {}), **((spec["prepare"].get("scales") or {}).get(scale) or {})}
         prepare = Arm(spec["prepare"].get("label", "prepare"), changes)
+    prepared_arms = (spec.get("prepare") or {}).get("arms")
+    if prepared_arms is not None:
+        labels = [a.label for a in arms]
+        if not isinstance(prepared_arms, list) or not all(label in labels for label in prepared_arms):
+            raise RecipeError(f"invalid {where}: study.prepare.arms: {prepared_arms!r}; give a list of arm labels "
+                              f"(the arms that start from its controller): {', '.join(labels)}")
+        prepared_arms = tuple(prepared_arms)
     if len({a.slug for a in arms}) != len(arms):
         raise RecipeError(f"invalid {where}: study.arms: two labels give the same directory name")
     return Study(path.stem, spec.get("title", path.stem), spec.get("paper", ""), spec.get("differs", ""),
-                 seeds, tuple(arms), recipe, scale, prepare, analysis, parameters, bool(spec.get("still", True)))
+                 seeds, tuple(arms), recipe, scale, prepare, analysis, parameters, bool(spec.get("still", True)),
+                 prepared_arms)
 
 
 PREPARE_DIR = "prepare"
@@ -217,14 +226,14 @@ def prepare_recipe(study: Study) -> dict:
 
 def arm_recipe(study: Study, arm: Arm, root: Path = Path(STUDIES_DIR)) -> dict:
     """The recipe of one arm: the base with its keys set (a section given a new `name` is replaced,
-    as in any recipe), swept over the study's seeds; with a preparatory run (in `root`), starting
-    from its best controller."""
+    as in any recipe), swept over the study's seeds; with a preparatory run (in `root`) that names
+    this arm or every arm, starting from its best controller."""
     changes = _dotted(arm.set)
     environment = changes.get("environment")
     if isinstance(environment, dict) and "name" in environment:  # presets share one schema: keep the base's keys
         changes["environment"] = deep_merge(study.recipe.get("environment") or {}, environment)
     data = merge_recipes(study.recipe, changes)
-    if study.prepare is not None:
+    if study.prepare is not None and (study.prepared_arms is None or arm.label in study.prepared_arms):
         data["init_controller"] = str(root / PREPARE_DIR)
     data["name"] = f"{study.name}-{arm.slug}"
     data["sweep"] = {"method": "grid", "metric": {"name": "best.episode_return", "goal": "maximize"},

@@ -192,6 +192,20 @@ def test_a_study_with_a_preparatory_run_starts_every_arm_from_its_controller():
         assert arm_recipe(study, arm, Path("out"))["init_controller"] == str(Path("out") / "prepare")
 
 
+def test_a_preparatory_run_can_start_only_the_arms_it_names(tmp_path, toy_study):
+    """Table 3's design-only arm starts from a gait trained beforehand (as the paper's does); its
+    control-only and co-design arms start from scratch."""
+    study = load_study("what_to_optimise")
+    starts = {arm.label: arm_recipe(study, arm, Path("out")).get("init_controller") for arm in study.arms}
+    assert starts == {"Controller": None, "Design": str(Path("out") / "prepare"), "Design + Control": None}
+    data = yaml.safe_load(toy_study.read_text())
+    data["study"]["prepare"] = {"label": "gait", "set": {}, "arms": ["Loose", "Tight bound"]}
+    toy_study.write_text(yaml.safe_dump(data))
+    with pytest.raises(RecipeError, match=r"study.prepare.arms: \['Loose', 'Tight bound'\]; give a list of arm "
+                                          r"labels \(the arms that start from its controller\): Loose bound, Tight bound"):
+        load_study(str(toy_study))
+
+
 def test_a_grid_makes_an_arm_per_combination_with_the_paper_number_and_only_its_scales(tmp_path, toy_recipe):
     study = {
         "study": {"title": "grid", "seeds": [0],
