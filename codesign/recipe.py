@@ -20,7 +20,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from codesign.errors import RecipeError, RegistryError
 from codesign.registry import KINDS, Registry, suggest
-from codesign.schema import Problem, convert, join
+from codesign.schema import Problem, convert, deep_merge, join
 
 #: The repository's recipe directory, where bare recipe names are looked up (besides ./recipes).
 RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
@@ -224,14 +224,6 @@ def merge_recipes(base: Mapping[str, Any], child: Mapping[str, Any]) -> dict:
             out[key] = deep_merge(old, value)
         else:
             out[key] = value
-    return out
-
-
-def deep_merge(base: Mapping, child: Mapping) -> dict:
-    out = dict(base)
-    for key, value in child.items():
-        old = out.get(key)
-        out[key] = deep_merge(old, value) if isinstance(old, Mapping) and isinstance(value, Mapping) else value
     return out
 
 

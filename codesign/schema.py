@@ -131,15 +131,16 @@ def _over_default(f: dataclasses.Field, given: Any) -> Any:
     default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
     if not dataclasses.is_dataclass(default) or isinstance(default, type):
         return given
-    return _deep_merge(dataclasses.asdict(default), given)
+    return deep_merge(dataclasses.asdict(default), given)
 
 
-def _deep_merge(base: dict, over: Mapping) -> dict:
-    merged = dict(base)
-    for key, value in over.items():
-        inner = merged.get(key)
-        merged[key] = _deep_merge(inner, value) if isinstance(inner, dict) and isinstance(value, Mapping) else value
-    return merged
+def deep_merge(base: Mapping, child: Mapping) -> dict:
+    """`child` over `base`, mappings merged key by key at every depth."""
+    out = dict(base)
+    for key, value in child.items():
+        old = out.get(key)
+        out[key] = deep_merge(old, value) if isinstance(old, Mapping) and isinstance(value, Mapping) else value
+    return out
 
 
 def _value(tp: Any, value: Any, path: str, meta: Mapping, problems: list[Problem]) -> Any:
