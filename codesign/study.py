@@ -242,7 +242,7 @@ def arm_recipe(study: Study, arm: Arm, root: Path = Path(STUDIES_DIR)) -> dict:
 
 
 def arm_seeds(study: Study, arm: Arm) -> tuple[int, ...]:
-    """The seeds an arm runs: its own (those of them the scale runs, at least the scale's first), else the study's."""
+    """The seeds an arm runs: its own (`load_study` keeps those the scale runs), else the study's."""
     return arm.seeds or study.seeds
 
 
