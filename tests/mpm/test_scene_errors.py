@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from codesign_mpm import BodySpec, MaterialSpec, Scene, SceneError, ShapeSpec, TerrainSpec, build_particles
-from codesign_mpm.engine import time_step
+from codesign_mpm.engine import time_step, wave_speeds
+from codesign_mpm.engine.simulator import distinct_rows
 from codesign_mpm.scene import validate_scene
 
 
@@ -154,6 +155,25 @@ def test_time_step_accounts_for_water_bulk_modulus_and_snow_hardening():
     assert stable(kind="snow", max_hardening=9.0) == pytest.approx(stable(kind="neo_hookean") / 3, rel=1e-12)
     # a viscous material also respects the explicit diffusion limit rho dx^2 / (6 eta)
     assert stable(kind="mud", viscosity=1e3) == pytest.approx(s.cfl * 1e3 * s.dx ** 2 / 6e3, rel=1e-12)
+
+
+def test_each_particle_of_a_body_with_its_own_stiffness_gets_its_own_wave_speed():
+    """The CFL table groups particles by material (`distinct_rows`, numpy's unique without its slow
+    record sort): a body whose every particle has its own E, as the particle representation
+    makes, must still give each particle sqrt((lambda + 2 mu) / rho) of its own E."""
+    s = scene(material=MaterialSpec(poisson_ratio=0.3))
+    p = build_particles(s)
+    rng = np.random.default_rng(0)
+    p.youngs_modulus = rng.choice([1e4, 3e4, 1e5], p.n) * rng.choice([1.0, 1.5], p.n)  # 6 kinds, repeated
+    speeds, _ = wave_speeds(s, p)
+    nu = 0.3
+    p_modulus = p.youngs_modulus * (1 - nu) / ((1 + nu) * (1 - 2 * nu))  # lambda + 2 mu
+    np.testing.assert_allclose(speeds, np.sqrt(p_modulus / p.density), rtol=1e-12)
+    table = np.column_stack([rng.integers(0, 3, 500), rng.choice([0.0, -1.5, 2.0], (500, 3))])
+    kinds, of_row = distinct_rows(table)
+    expected_kinds, expected_of_row = np.unique(table, axis=0, return_inverse=True)
+    np.testing.assert_array_equal(kinds, expected_kinds)
+    np.testing.assert_array_equal(of_row, expected_of_row.ravel())
 
 
 def test_a_layer_fills_the_terrain_around_other_bodies_without_overlap():

