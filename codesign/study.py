@@ -195,17 +195,18 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
             raise RecipeError(f"invalid {where}: study.arms[{i}].seeds: {own!r}; give a non-empty list of integers")
         chosen = (tuple(v for v in own if v in seeds) or seeds[:1]) if own is not None else None
         arms.append(Arm(arm["label"], changes, arm.get("paper"), chosen))
-    prepare = None
+    prepare, prepared_arms = None, None
     if spec.get("prepare") is not None:
-        changes = {**(spec["prepare"].get("set") or {}), **((spec["prepare"].get("scales") or {}).get(scale) or {})}
-        prepare = Arm(spec["prepare"].get("label", "prepare"), changes)
-    prepared_arms = (spec.get("prepare") or {}).get("arms")
-    if prepared_arms is not None:
-        labels = [a.label for a in arms]
-        if not isinstance(prepared_arms, list) or not all(label in labels for label in prepared_arms):
-            raise RecipeError(f"invalid {where}: study.prepare.arms: {prepared_arms!r}; give a list of arm labels "
-                              f"(the arms that start from its controller): {', '.join(labels)}")
-        prepared_arms = tuple(prepared_arms)
+        spec_prepare = spec["prepare"]
+        changes = {**(spec_prepare.get("set") or {}), **((spec_prepare.get("scales") or {}).get(scale) or {})}
+        prepare = Arm(spec_prepare.get("label", "prepare"), changes)
+        named = spec_prepare.get("arms")
+        if named is not None:
+            labels = [a.label for a in arms]
+            if not isinstance(named, list) or not all(label in labels for label in named):
+                raise RecipeError(f"invalid {where}: study.prepare.arms: {named!r}; give a list of arm labels "
+                                  f"(the arms that start from its controller): {', '.join(labels)}")
+            prepared_arms = tuple(named)
     if len({a.slug for a in arms}) != len(arms):
         raise RecipeError(f"invalid {where}: study.arms: two labels give the same directory name")
     return Study(path.stem, spec.get("title", path.stem), spec.get("paper", ""), spec.get("differs", ""),
