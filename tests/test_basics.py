@@ -44,6 +44,25 @@ def test_sine_matches_the_papers_formula():
     np.testing.assert_allclose(controller(None, 5).detach().numpy(), expected, rtol=1e-5)
 
 
+def test_a_bias_per_actuator_acts_as_the_papers_biases_summed_and_learns_at_its_own_rate():
+    """per_actuator's beta_k is the per_basis beta_kij summed: the same actions, and the gradient
+    of a per_basis entry is that of the sum, so one Adam step moves the sum I x J times further."""
+    paper, lean = sine(init_std=1.0), sine(init_std=1.0, bias="per_actuator")
+    assert lean.beta.shape == (3,) and paper.beta.shape == (3, 2, 4)
+    with torch.no_grad():
+        paper.beta.copy_(torch.linspace(-0.3, 0.3, 24).reshape(3, 2, 4))
+        lean.beta.copy_(paper.beta.sum(dim=(1, 2)))
+    for t in (0, 3, 11):
+        torch.testing.assert_close(paper(None, t), lean(None, t), rtol=1e-6, atol=1e-7)
+    for controller in (paper, lean):
+        before = controller.beta.detach().clone()
+        adam = torch.optim.Adam([controller.beta], lr=0.01)
+        controller(None, 2).sum().backward()
+        adam.step()
+        controller.moved = (controller.beta.detach() - before).reshape(3, -1).sum(1)
+    torch.testing.assert_close(paper.moved, 8 * lean.moved, rtol=1e-4, atol=1e-7)
+
+
 def test_sine_gradients_flow_to_its_parameters():
     controller = sine(init_std=0.1)
     alpha, beta = controller.parameters()

@@ -12,6 +12,10 @@ class SineConfig:
     phases: int = field(default=4, metadata={"ge": 1, "help": "number of phase offsets phi_j = 2 pi j / phases"})
     bound: float = field(default=0.3, metadata={"gt": 0, "help": "actions lie in [-bound, bound]"})
     init_std: float = field(default=0.1, metadata={"ge": 0, "help": "std of the initial basis weights alpha"})
+    bias: str = field(default="per_basis", metadata={
+        "choices": ["per_basis", "per_actuator"],
+        "help": "per_basis: the paper's beta_kij, one per basis term (only their sum acts, so a gradient moves the "
+                "effective bias I x J times faster); per_actuator: one beta_k per actuator, no redundant parameters"})
 
 
 @dataclass
