@@ -125,45 +125,90 @@ def test_evaluate_writes_each_episodes_return_and_trajectory(tmp_path):
         assert float(data["episode_return"]) == pytest.approx(row["episode_return"])
 
 
-def test_diff_physics_takes_back_a_step_that_leaves_the_design_unplayable():
-    """A design past a threshold is refused (as a design thinner than the grid is): the step is
-    undone, the design's learning rate halved, and the run goes on from the last playable design;
-    a refused first design is an error that says so."""
+class Knob:
+    """A one-parameter representation: the design is the parameter."""
+
+    def __init__(self, value):
+        self.x = torch.tensor([value], requires_grad=True)
+
+    def parameters(self):
+        return [self.x]
+
+    def __call__(self):
+        return self.x
+
+
+class Cliff:
+    """The return grows with the design x, but x above 1 is unplayable (as a design thinner than the grid is)."""
+
+    horizon = 1
+
+    def __init__(self):
+        from types import SimpleNamespace
+
+        self.design_space = SimpleNamespace(points=np.zeros((1, 3)))
+
+    def differentiable_episode(self, design, controller, checkpoint_every):
+        from types import SimpleNamespace
+
+        from codesign.errors import DesignError
+
+        if design.item() > 1.0:
+            raise DesignError(f"design {design.item():.3g} is past the cliff")
+        return SimpleNamespace(loss=-design.sum(), episode_return=design.item(), com=torch.zeros(2, 3),
+                               actions=np.zeros((1, 0)), metrics={})
+
+
+def cliff_climber(start: float, iterations: int = 12):
     from types import SimpleNamespace
 
-    from codesign.errors import DesignError
     from codesign_optimizers.config import DiffPhysicsConfig
     from codesign_optimizers.diff_physics import DiffPhysics
 
-    class Knob:  # a one-parameter representation: the design is the parameter
-        def __init__(self, value):
-            self.x = torch.tensor([value], requires_grad=True)
+    optimizer = DiffPhysics(DiffPhysicsConfig(optimize="design", iterations=iterations, lr_design=0.3))
+    optimizer.setup(Cliff(), Knob(start), SimpleNamespace(parameters=lambda: []), rng=np.random.default_rng(0),
+                    run_dir=None)
+    return optimizer
 
-        def parameters(self):
-            return [self.x]
 
-        def __call__(self):
-            return self.x
+def test_diff_physics_takes_back_a_step_that_leaves_the_design_unplayable():
+    """A refused design: the step is undone, parameters and Adam's moments alike, the design's
+    learning rate halved, and the run goes on from the last playable design; a refused first
+    design is an error that says so."""
+    from codesign.errors import DesignError
 
-    class Cliff:  # the return grows with x, but x above 1 is unplayable
-        horizon, design_space = 1, SimpleNamespace(points=np.zeros((1, 3)))
+    optimizer = cliff_climber(0.5)
 
-        def differentiable_episode(self, design, controller, checkpoint_every):
-            if design.item() > 1.0:
-                raise DesignError(f"design {design.item():.3g} is past the cliff")
-            return SimpleNamespace(loss=-design.sum(), episode_return=design.item(), com=torch.zeros(2, 3),
-                                   actions=np.zeros((1, 0)), metrics={})
+    def adam_state():
+        return {k: v.clone() for k, v in optimizer.adam.state[optimizer.representation.x].items()}
 
-    optimizer = DiffPhysics(DiffPhysicsConfig(optimize="design", iterations=12, lr_design=0.3))
-    knob = Knob(0.5)
-    optimizer.setup(Cliff(), knob, SimpleNamespace(parameters=lambda: []), rng=np.random.default_rng(0), run_dir=None)
-    rows = [optimizer.step() for _ in range(12)]
-    refused = [row for row in rows if row.get("unplayable")]
-    assert refused and refused[0]["lr_design"] == pytest.approx(0.15)
+    rows, adam = [], [{}]  # adam[i]: Adam's state when step i starts
+    for _ in range(12):
+        rows.append(optimizer.step())
+        adam.append(adam_state())
+    refused = [i for i, row in enumerate(rows) if row.get("unplayable")]
+    assert refused and rows[refused[0]]["lr_design"] == pytest.approx(0.15)
+    for i in refused:  # step i-1 made the refused design: Adam is back where it was before that step
+        assert adam[i + 1].keys() == adam[i - 1].keys() == {"step", "exp_avg", "exp_avg_sq"}
+        assert all(torch.equal(adam[i + 1][key], adam[i - 1][key]) for key in adam[i + 1])
     played = [row["episode_return"] for row in rows if "episode_return" in row]
     assert max(played) <= 1.0 and optimizer.best.best_return > 0.9  # it crept up to the cliff's edge
     with pytest.raises(DesignError, match=r"the first design \(iteration 0\) is unplayable: design 2 is past"):
-        fresh = DiffPhysics(DiffPhysicsConfig(optimize="design", iterations=2))
-        fresh.setup(Cliff(), Knob(2.0), SimpleNamespace(parameters=lambda: []), rng=np.random.default_rng(0),
-                    run_dir=None)
-        fresh.step()
+        cliff_climber(2.0, iterations=2).step()
+
+
+def test_diff_physics_undoes_a_step_refused_right_after_a_resume():
+    """The undo state is checkpointed: resumed just before a refused step, the run undoes it and
+    ends with the numbers of an uninterrupted run."""
+    import pickle
+
+    whole = cliff_climber(0.5)
+    rows = [whole.step() for _ in range(12)]
+    first_refusal = next(i for i, row in enumerate(rows) if row.get("unplayable"))
+    part = cliff_climber(0.5)
+    for _ in range(first_refusal):
+        part.step()
+    resumed = cliff_climber(0.5)
+    resumed.load_state_dict(pickle.loads(pickle.dumps(part.state_dict())))
+    assert [resumed.step() for _ in range(first_refusal, 12)] == rows[first_refusal:]
+

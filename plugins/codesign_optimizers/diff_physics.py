@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 
@@ -40,20 +41,23 @@ class DiffPhysics(Optimizer):
         self.environment, self.representation, self.controller, self.rng = environment, representation, controller, rng
         self.groups = parameter_groups(self.config.optimize, representation, controller)
         self.best = BestKeeper(environment, controller, run_dir)
-        self._before: list[torch.Tensor] | None = None  # the parameters before the last Adam step
+        self._before: tuple[list[torch.Tensor], dict] | None = None  # parameters and Adam before the last step
         self._new_adam()
 
     def _parameters(self) -> list[torch.Tensor]:
         return [p for params in self.groups.values() for p in params]
 
     def _take_back(self, error: DesignError) -> dict[str, float]:
-        """Undo the last Adam step, whose design the environment refused, and halve the design's rate."""
+        """Undo the last Adam step, whose design the environment refused (parameters and Adam's
+        state), and halve the design's rate."""
         if self._before is None:
             raise DesignError(f"diff_physics: the first design (iteration {self.iteration}) is unplayable: {error}; "
                               "use a finer environment.dx, a larger robot.size or another representation") from error
+        parameters, adam = self._before
         with torch.no_grad():
-            for p, saved in zip(self._parameters(), self._before):
+            for p, saved in zip(self._parameters(), parameters):
                 p.copy_(saved)
+        self.adam.load_state_dict(adam)  # Adam's moments and step count as before the refused step
         self._before = None  # two refusals in a row go back no further than the last playable design
         metrics = {"unplayable": 1.0, "best_return": self.best.best_return,
                    "restart": float(self.iteration // self.config.iterations)}
@@ -105,7 +109,7 @@ class DiffPhysics(Optimizer):
                                episode.metrics)
         self.best.offer(episode.episode_return, design, record, self.iteration)  # before the update changes them
         metrics["best_return"] = self.best.best_return
-        self._before = [p.detach().clone() for p in self._parameters()]
+        self._before = ([p.detach().clone() for p in self._parameters()], copy.deepcopy(self.adam.state_dict()))
         self.adam.step()
         self.iteration += 1
         return metrics
@@ -113,7 +117,8 @@ class DiffPhysics(Optimizer):
     def state_dict(self) -> dict:
         return {"iteration": self.iteration, "adam": self.adam.state_dict(), "best_return": self.best.best_return,
                 "representation": [p.detach().clone() for p in self.representation.parameters()],
-                "controller": [p.detach().clone() for p in self.controller.parameters()]}
+                "controller": [p.detach().clone() for p in self.controller.parameters()],
+                "before": self._before}  # so a step refused right after a resume is undone too
 
     def load_state_dict(self, state: dict) -> None:
         self.iteration = state["iteration"]
@@ -123,3 +128,4 @@ class DiffPhysics(Optimizer):
                     p.copy_(s)
         self.adam.load_state_dict(state["adam"])
         self.best.best_return = state["best_return"]
+        self._before = state.get("before")  # absent from checkpoints written before undo was checkpointed
