@@ -164,6 +164,9 @@ class Optimizer(ABC):
     iterations: int
     maximize: ClassVar[dict[str, bool]] = {}
     """Metrics for which lower is better map to False; any other metric's best value is its max."""
+    stopped: str | None = None
+    """Why the search ended before ``iterations`` (e.g. CMA-ES's termination criteria), else None:
+    the runner stops calling :meth:`step` and writes the reason to summary.json. Part of the state."""
 
     @abstractmethod
     def setup(

@@ -155,6 +155,8 @@ def _execute(
         with progress_bar(total=optimizer.iterations, initial=completed, desc=recipe.name, unit="iter",
                           show=progress) as bar:
             for iteration in range(completed, optimizer.iterations):
+                if getattr(optimizer, "stopped", None):
+                    break
                 row = {**optimizer.step(), "iteration": iteration, "wall_time": wall_time()}
                 tracker.log(row, step=iteration)
                 rows.append(row)
@@ -180,6 +182,8 @@ def _execute(
     finally:
         maximize = parts.optimizer.maximize if parts else {}
         summary = _summary(recipe, rows, maximize, status, error, wall_time(), load_best_info(run_dir))
+        if parts is not None and getattr(parts.optimizer, "stopped", None):
+            summary["stopped"] = parts.optimizer.stopped
         (run_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
         curve = learning_curve(rows, run_dir / CURVE_FILE, recipe.name) if rows else None
         if tracker is not None:

@@ -23,9 +23,20 @@ class DiffPhysicsConfig:
 @dataclass
 class CMAESConfig:
     optimize: str = field(default="control", metadata={"choices": MODES, "help": "which parameters to evolve"})
-    generations: int = field(default=20, metadata={"ge": 1})
-    population: int = field(default=8, metadata={"ge": 2, "help": "candidates per generation (CMA's popsize)"})
-    sigma0: float = field(default=0.1, metadata={"gt": 0, "help": "initial step size"})
+    generations: int = field(default=20, metadata={"ge": 1, "help": "generations in all, restarts included"})
+    population: Optional[int] = field(default=None, metadata={
+        "ge": 2, "help": "candidates per generation (CMA's popsize; null: pycma's 4 + 3 ln n for n parameters)"})
+    sigma0: float = field(default=0.1, metadata={
+        "gt": 0, "help": "initial step size (of the controller's parameters when both groups are searched)"})
+    design_scale: Optional[float] = field(default=None, metadata={
+        "gt": 0, "help": "optimize: both: the design parameters' initial step over the controller's (CMA_stds; "
+                         "null: the ratio of the groups' RMS initial values)"})
+    diagonal_above: int = field(default=500, metadata={
+        "ge": 0, "help": "above this many parameters the covariance is diagonal (separable CMA-ES, pycma's "
+                         "CMA_diagonal): memory and time per generation linear in n, not quadratic"})
+    restarts: int = field(default=0, metadata={
+        "ge": 0, "help": "IPOP restarts when pycma's termination criteria stop a search: each starts again from "
+                         "the initial parameters with twice the population; with none left the run ends there"})
     lower: Optional[float] = field(default=None, metadata={"help": "lower bound on every parameter (null: none)"})
     upper: Optional[float] = field(default=None, metadata={"help": "upper bound on every parameter (null: none)"})
     batch: int = field(default=0, metadata={
