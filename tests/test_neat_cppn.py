@@ -78,13 +78,36 @@ def test_fields_are_a_design_over_the_space_and_come_from_the_generator():
 def test_a_body_under_the_minimum_fraction_is_invalid():
     representation = build(min_body_fraction=0.5)
     genome = representation.genome
-    for key in representation.genome_config.output_keys:  # occupancy output of a lone bias neuron
-        genome.nodes[key].bias = -10.0
-    for conn in genome.connections.values():
+    for conn in genome.connections.values():  # every output a lone bias neuron
         conn.enabled = False
-    genome.nodes[0].activation = "identity"
+    occupied, empty = representation.genome_config.output_keys[:2]
+    for key, bias in ((occupied, -1.0), (empty, 1.0)):  # the empty score wins everywhere
+        genome.nodes[key].activation, genome.nodes[key].bias = "identity", bias
     representation.set_genome(genome, representation.genome_config)
+    assert not representation.raw_occupancy.any()
     assert not representation.valid and representation().occupancy.sum() == 0
+
+
+def test_fresh_genomes_are_seldom_empty_or_full(capsys):
+    # One output's sign (the former rule) filled the whole workspace for about half of them: an
+    # output's activation may be sigmoid, gauss, exp or abs, never negative.
+    representation = build()
+    config = DefaultGenome.parse_config(representation.genome_section())
+    config.innovation_tracker = InnovationTracker()
+    random.seed(0)
+    raw, kept = [], []
+    for key in range(400):
+        genome = DefaultGenome(key)
+        genome.configure_new(config)
+        representation.set_genome(genome, config)
+        raw.append(representation.raw_occupancy.mean())
+        kept.append(representation().occupancy.mean())
+    raw, kept = np.array(raw), np.array(kept)
+    with capsys.disabled():
+        print(f"\n400 fresh genomes: raw mask full {np.mean(raw == 1):.1%}, empty {np.mean(raw == 0):.1%}; "
+              f"connected body full {np.mean(kept == 1):.1%}, empty {np.mean(kept == 0):.1%}, "
+              f"under min_body_fraction {np.mean(kept < 0.05):.1%}")
+    assert np.mean(raw == 1) <= 0.25 and np.mean(raw == 0) <= 0.25
 
 
 def test_bad_configs_are_recipe_errors():

@@ -22,6 +22,13 @@ def codesign_register(registry: PluginRegistrar) -> None:
     )
     registry.add(
         "controller",
+        "hyperneat",
+        "codesign_basics.hyperneat:HyperNEATController",
+        "codesign_basics.config:HyperNEATConfig",
+        "HyperNEAT: a NEAT genome's CPPN paints the weights of a network on sine basis and observation.",
+    )
+    registry.add(
+        "controller",
         "trajectory",
         "codesign_basics.trajectory:TrajectoryController",
         "codesign_basics.config:TrajectoryConfig",

@@ -3,6 +3,8 @@
 from dataclasses import dataclass, field
 from typing import Optional
 
+from codesign_basics.config import NeatGenomeSettings
+
 
 def _symmetric():
     return field(default=False, metadata={
@@ -127,30 +129,11 @@ class DiffCPPNConfig:
     symmetric: bool = _symmetric()
 
 
-# neat-python's names; the paper's set for its CPPN-NEAT baseline (appendix "Evolution Strategy")
-NEAT_ACTIVATIONS = ["sigmoid", "tanh", "sin", "gauss", "selu", "abs", "log", "exp", "identity"]
-
-
 @dataclass
-class NeatCPPNConfig:
-    """The genome half of NEAT's settings (neat-python's [DefaultGenome]); the population half is
-    the cppn_neat optimizer's."""
+class NeatCPPNConfig(NeatGenomeSettings):
+    """The genome settings (NeatGenomeSettings: neat-python's [DefaultGenome]) and how a genome's
+    CPPN becomes a body."""
 
-    activations: list[str] = field(default_factory=lambda: NEAT_ACTIVATIONS[:8], metadata={
-        "choices": NEAT_ACTIVATIONS, "min_len": 1, "help": "activations a node may take (mutated at activation_mutate_rate)"})
-    activation_mutate_rate: float = field(default=0.1, metadata={"ge": 0, "le": 1})
-    initial_connection: str = field(default="full_direct", metadata={
-        "choices": ["full_direct", "full_nodirect", "fs_neat_nohidden"],
-        "help": "neat-python's initial_connection (full_nodirect needs num_hidden > 0)"})
-    num_hidden: int = field(default=0, metadata={"ge": 0, "help": "hidden nodes of the first genomes"})
-    conn_add_prob: float = field(default=0.3, metadata={"ge": 0, "le": 1})
-    conn_delete_prob: float = field(default=0.1, metadata={"ge": 0, "le": 1})
-    node_add_prob: float = field(default=0.2, metadata={"ge": 0, "le": 1})
-    node_delete_prob: float = field(default=0.05, metadata={"ge": 0, "le": 1})
-    weight_init_stdev: float = field(default=1.0, metadata={"gt": 0})
-    weight_mutate_rate: float = field(default=0.8, metadata={"ge": 0, "le": 1})
-    weight_mutate_power: float = field(default=0.5, metadata={"ge": 0})
-    bias_mutate_rate: float = field(default=0.7, metadata={"ge": 0, "le": 1})
     min_body_fraction: float = field(default=0.05, metadata={
         "ge": 0, "lt": 1, "help": "a genome whose connected body keeps fewer of the workspace's particles is "
                                   "invalid (ranked below every valid one, never simulated)"})

@@ -2,15 +2,11 @@
 queried at every particle of the workspace, gives occupancy, stiffness and muscle membership.
 
 The genome is evolved by the `cppn_neat` optimizer (neat-python); this representation only
-turns one genome into a design. neat-python evaluates a network point by point in Python;
-here the network's nodes are evaluated in topological order on all particles at once with
-numpy, using neat-python's own activation definitions (its scaled sigmoid, sin, ... ; a test
-checks both agree).
+turns one genome into a design. The network is evaluated on all particles at once
+(codesign_basics.cppn, shared with the hyperneat controller).
 """
 
 from __future__ import annotations
-
-import random
 
 import numpy as np
 import torch
@@ -19,74 +15,22 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from codesign.interfaces import DesignFields, DesignSpace, Representation
+from codesign_basics.cppn import ACTIVATIONS, evaluate_cppn, genome_section, random_genome  # noqa: F401 (re-exported)
 from codesign_designs.common import (check_fiber, check_stiffness_ratios, coordinate_features, fixed_fibers,
                                      stiffness_map)
 from codesign_designs.config import NeatCPPNConfig
 
-_SELU_LAMBDA, _SELU_ALPHA = 1.0507009873554804934193349852946, 1.6732632423543772848170429916717
-
-ACTIVATIONS = {  # neat.activations, vectorised (same clamps and scales)
-    "sigmoid": lambda z: 1.0 / (1.0 + np.exp(-np.clip(5.0 * z, -60.0, 60.0))),
-    "tanh": lambda z: np.tanh(np.clip(2.5 * z, -60.0, 60.0)),
-    "sin": lambda z: np.sin(np.clip(5.0 * z, -60.0, 60.0)),
-    "gauss": lambda z: np.exp(-5.0 * np.clip(z, -3.4, 3.4) ** 2),
-    "selu": lambda z: np.where(z > 0.0, _SELU_LAMBDA * z, _SELU_LAMBDA * _SELU_ALPHA * (np.exp(np.minimum(z, 0.0)) - 1)),
-    "abs": np.abs,
-    "log": lambda z: np.log(np.maximum(z, 1e-7)),
-    "exp": lambda z: np.exp(np.clip(z, -60.0, 60.0)),
-    "identity": lambda z: z,
-}
 N_INPUTS = 7  # x, y, z, their distances to the mid-planes, radius (codesign_designs.common.coordinate_features)
-
-
-def genome_section(config: NeatCPPNConfig, n_outputs: int) -> dict[str, str]:
-    """neat-python's [DefaultGenome] settings for `n_outputs` CPPN outputs (sum aggregation only;
-    unit response, so a node computes act(bias + sum w_i x_i))."""
-    weight = {"init_mean": 0.0, "init_stdev": config.weight_init_stdev, "max_value": 30.0, "min_value": -30.0,
-              "mutate_power": config.weight_mutate_power, "mutate_rate": config.weight_mutate_rate,
-              "replace_rate": 0.1}
-    bias = {**weight, "init_stdev": 1.0, "mutate_rate": config.bias_mutate_rate}
-    response = {"init_mean": 1.0, "init_stdev": 0.0, "max_value": 1.0, "min_value": 1.0, "mutate_power": 0.0,
-                "mutate_rate": 0.0, "replace_rate": 0.0}
-    section = {
-        "num_inputs": N_INPUTS, "num_outputs": n_outputs, "num_hidden": config.num_hidden, "feed_forward": True,
-        "initial_connection": config.initial_connection,
-        "compatibility_disjoint_coefficient": 1.0, "compatibility_weight_coefficient": 0.5,
-        "conn_add_prob": config.conn_add_prob, "conn_delete_prob": config.conn_delete_prob,
-        "node_add_prob": config.node_add_prob, "node_delete_prob": config.node_delete_prob,
-        "activation_default": "random", "activation_options": " ".join(config.activations),
-        "activation_mutate_rate": config.activation_mutate_rate,
-        "aggregation_default": "sum", "aggregation_options": "sum", "aggregation_mutate_rate": 0.0,
-        "enabled_default": True, "enabled_mutate_rate": 0.01,
-        **{f"weight_{k}": v for k, v in weight.items()},
-        **{f"bias_{k}": v for k, v in bias.items()},
-        **{f"response_{k}": v for k, v in response.items()},
-    }
-    return {k: str(v) for k, v in section.items()}
-
-
-def evaluate_cppn(genome, genome_config, inputs: np.ndarray) -> np.ndarray:
-    """(N, num_outputs) outputs of the genome's network at each row of `inputs` (N, num_inputs);
-    an output no enabled path reaches is 0, as in neat.nn.FeedForwardNetwork."""
-    from neat.graphs import feed_forward_layers
-
-    connections = [cg.key for cg in genome.connections.values() if cg.enabled]
-    layers, _ = feed_forward_layers(genome_config.input_keys, genome_config.output_keys, connections)
-    values = {key: inputs[:, i] for i, key in enumerate(genome_config.input_keys)}
-    zero = np.zeros(len(inputs))
-    for layer in layers:
-        for node in sorted(layer):
-            gene = genome.nodes[node]
-            total = sum((values[i] * genome.connections[(i, o)].weight
-                         for i, o in connections if o == node and i in values), zero)
-            values[node] = ACTIVATIONS[gene.activation](gene.bias + gene.response * total)
-    return np.stack([values.get(key, zero) for key in genome_config.output_keys], axis=1)
 
 
 class NeatCPPNRepresentation(Representation):
     """A NEAT genome's CPPN: inputs the seven coordinate features (the paper's x, y, z, plane
-    distances and radius); outputs occupancy (kept where positive), stiffness (as the other
-    representations' logit) and K muscle scores (each particle joins its highest).
+    distances and radius); outputs an occupied and an empty score (a particle is occupied where
+    the first is larger, as in SoftZoo's released code), stiffness (as the other representations'
+    logit) and K muscle scores (each particle joins its highest). Two competing occupancy scores,
+    not one output's sign: an output node's activation is drawn from all of NEAT's, and sigmoid,
+    gauss, exp and abs are never negative, so a sign test fills the whole workspace for about half
+    of the fresh genomes.
 
     The paper's connected-body constraint: only the largest connected piece of the occupied
     particles is kept (particles are neighbours within 1.5 times the median spacing), and of that
@@ -104,41 +48,32 @@ class NeatCPPNRepresentation(Representation):
         self.genome = None
 
     def setup(self, space: DesignSpace, rng: np.random.Generator) -> None:
-        from neat.genome import DefaultGenome
-        from neat.innovation import InnovationTracker
-
         self.space = space
         self.features = coordinate_features(space)
-        self.n_outputs = 2 + space.n_actuators
+        self.n_outputs = 3 + space.n_actuators  # occupied, empty, stiffness, K muscles
         self._fiber = fixed_fibers(space, self.config.fiber)
         tree = cKDTree(space.points)
         spacing = float(np.median(tree.query(space.points, k=2)[0][:, 1])) if len(space.points) > 1 else 1.0
         self._pairs = tree.query_pairs(1.5 * spacing, output_type="ndarray")
-        genome_config = DefaultGenome.parse_config(self.genome_section())
-        genome_config.innovation_tracker = InnovationTracker()
-        state = random.getstate()  # neat-python draws from the random module; leave it as it was
-        random.seed(int(rng.integers(2**31)))
-        genome = DefaultGenome(0)
-        genome.configure_new(genome_config)
-        random.setstate(state)
-        self.set_genome(genome, genome_config)
+        self.set_genome(*random_genome(self.genome_section(), rng))
 
     def genome_section(self) -> dict[str, str]:
         """neat-python's [DefaultGenome] settings of this representation (after setup)."""
-        return genome_section(self.config, self.n_outputs)
+        return genome_section(self.config, N_INPUTS, self.n_outputs)
 
     def set_genome(self, genome, genome_config) -> None:
         """Make `genome` (a neat DefaultGenome of `genome_config`) the current design."""
         self.genome, self.genome_config = genome, genome_config
         out = evaluate_cppn(genome, genome_config, self.features)
-        occupied = self.connected_body(out[:, 0] > 0.0)
+        self.raw_occupancy = out[:, 0] > out[:, 1]  # what the genome alone says, before the body constraints
+        occupied = self.connected_body(self.raw_occupancy)
         if self.space.keep is not None:  # what the environment simulates of it (thick enough for its grid)
             occupied = self.space.keep(occupied)
         self.valid = occupied.mean() >= max(self.config.min_body_fraction, 1e-12)
-        muscle = np.eye(self.space.n_actuators)[np.argmax(out[:, 2:], axis=1)]
+        muscle = np.eye(self.space.n_actuators)[np.argmax(out[:, 3:], axis=1)]
         self._fields = DesignFields(
             occupancy=occupied.astype(float),
-            stiffness=stiffness_map(torch.as_tensor(out[:, 1]), self.space.default_stiffness,
+            stiffness=stiffness_map(torch.as_tensor(out[:, 2]), self.space.default_stiffness,
                                     self.config.min_stiffness_ratio, self.config.max_stiffness_ratio).numpy(),
             muscle=muscle, fiber=self._fiber)
 
