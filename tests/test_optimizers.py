@@ -69,7 +69,7 @@ def test_resumed_run_ends_with_the_numbers_of_an_uninterrupted_one(tmp_path, rec
     ({"name": "cma_es", "population": 1}, r"optimizer.population: 1 is out of range; must be >= 2"),
     ({"name": "cma_es", "optimize": "sideways"}, r"optimizer.optimize: 'sideways' is not a valid choice"),
     ({"name": "cma_es", "lower": 1.0, "upper": -1.0}, r"optimizer.lower/upper"),
-    ({"name": "cppn_neat", "optimize": "control"}, r"optimizer.optimize: 'control' is not a valid choice"),
+    ({"name": "cppn_neat", "optimize": "body"}, r"optimizer.optimize: 'body' is not a valid choice"),
     ({"name": "cppn_neat", "elitism": 10}, r"optimizer.elitism: 10 must be below optimizer.population \(10\)"),
 ])
 def test_bad_optimizer_settings_fail_with_the_key_and_what_is_allowed(tmp_path, optimizer, pattern):
@@ -212,3 +212,30 @@ def test_diff_physics_undoes_a_step_refused_right_after_a_resume():
     resumed.load_state_dict(pickle.loads(pickle.dumps(part.state_dict())))
     assert [resumed.step() for _ in range(first_refusal, 12)] == rows[first_refusal:]
 
+
+def test_unplayed_genomes_rank_last_without_blinding_neats_shares_to_small_returns():
+    """neat-python shares offspring in proportion to each species' mean fitness minus the
+    generation's minimum. The floor of unplayed genomes sits a tenth of the played spread below
+    the worst, so those differences, and the shares, are the same at any return scale."""
+    from codesign_optimizers.cppn_neat import neat_fitness
+
+    nan = float("nan")
+    for scale in (0.01, 1.0, 100.0):
+        fitness = neat_fitness([0.3 * scale, nan, 0.1 * scale, 0.2 * scale, nan])
+        assert fitness[1] == fitness[4] < min(fitness[0], fitness[2], fitness[3])
+        above = np.array(fitness) - min(fitness)
+        np.testing.assert_allclose(above / above.sum(), [0.611, 0, 0.056, 0.333, 0], atol=0.001)
+    assert neat_fitness([nan, nan]) == [0.0, 0.0]
+
+
+def test_every_brain_candidate_is_played_when_bodies_are_invalid(tmp_path):
+    """A body too small to play lends its brain candidate to the next valid body: CMA-ES is told
+    only returns that were played, a full population of them every generation."""
+    recipe = {**TOY_NEAT, "representation": {"name": "neat_cppn", "min_body_fraction": 0.5}}
+    run_dir = runner.run(resolve_recipe(recipe), run_dir=tmp_path / "run", progress=False)
+    rows = metrics(run_dir)
+    assert min(row["valid_fraction"] for row in rows) < 1.0  # some bodies were invalid
+    played = sum(row["simulated_steps"] for row in rows) / recipe["environment"]["horizon"]
+    with (run_dir / "checkpoint.pkl").open("rb") as f:
+        es = __import__("pickle").load(f)["optimizer"]["es"]
+    assert es.countevals == played == 8 * len(rows)

@@ -53,13 +53,19 @@ class BestKeeper:
         return True
 
 
+def frozen_design(representation: Representation) -> DesignFields:
+    """The representation's current design as numpy arrays that stay as they are when its
+    parameters (or genome) change for the next candidate."""
+    with torch.no_grad():
+        design = representation()
+    return DesignFields(**{name: to_numpy(getattr(design, name)).copy() for name in DesignFields.__dataclass_fields__})
+
+
 def candidate(representation: Representation, controller: Controller, params: list[torch.Tensor],
               x: np.ndarray | None) -> tuple[DesignFields, Controller]:
     """The design and a copy of the controller with the flat parameter vector `x` (None: nothing)
     loaded into `params`; both stay as they are when the parameters change for the next candidate."""
-    with torch.no_grad():
-        if x is not None:
+    if x is not None:
+        with torch.no_grad():
             vector_to_parameters(torch.as_tensor(x, dtype=params[0].dtype), params)
-        design = representation()
-    frozen = DesignFields(**{name: to_numpy(getattr(design, name)).copy() for name in DesignFields.__dataclass_fields__})
-    return frozen, copy.deepcopy(controller)
+    return frozen_design(representation), copy.deepcopy(controller)

@@ -76,11 +76,14 @@ class CPPNNEATConfig:
     the neat_cppn representation's; these are NEAT's population settings."""
 
     optimize: str = field(default="both", metadata={
-        "choices": ["design", "both"], "help": "design: NEAT alone (the controller stays); both: with CMA-ES on "
-                                               "the controller, one population shared (genome i plays candidate i)"})
+        "choices": MODES, "help": "design: NEAT on the body alone (the controller stays); control: the brain alone "
+                                  "(the design stays); both: body and brain, one population shared (genome i plays "
+                                  "brain candidate i). The brain: CMA-ES on the controller's parameters, or NEAT on "
+                                  "the hyperneat controller's CPPN"})
     generations: int = field(default=100, metadata={"ge": 1})
     population: int = field(default=10, metadata={"ge": 2, "help": "NEAT's pop_size, also CMA-ES's popsize"})
-    sigma0: float = field(default=0.1, metadata={"gt": 0, "help": "CMA-ES initial step size on the controller"})
+    sigma0: float = field(default=0.1, metadata={
+        "gt": 0, "help": "CMA-ES initial step size on the controller (unused for a hyperneat controller)"})
     batch: int = field(default=0, metadata={
         "ge": 0, "help": "episodes simulated together where the environment can batch them (0: the whole "
                          "population; 1: one at a time)"})
