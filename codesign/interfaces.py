@@ -99,9 +99,14 @@ class Environment(ABC):
     def step(self, action: np.ndarray) -> StepResult:
         """Apply ``action`` (shape ``(action_dim,)``) for one control step."""
 
-    def reset_population(self, designs: list[DesignFields | None], seed: int | None = None) -> list[np.ndarray]:
+    def reset_population(self, designs: list[DesignFields | None],
+                         seed: int | list[int] | None = None) -> list[np.ndarray]:
         """Start one episode per design (None: the current one), simulated together; return their
-        first observations. Only where :attr:`batched` is true."""
+        first observations. Only where :attr:`batched` is true.
+
+        ``seed``: a list holds one seed per design, episode ``b`` starting as ``reset(designs[b],
+        seed[b])`` would; a single int (or None) is every episode's seed, so each starts as
+        ``reset(design, seed)`` would (`play_population` compares with `play` that way)."""
         raise NotImplementedError(f"{type(self).__name__} simulates one episode at a time")
 
     def step_population(self, actions: np.ndarray) -> list[StepResult]:

@@ -331,8 +331,10 @@ class LocomotionEnv(Environment):
         self.sim.on_frame = self._episode.watch.see
         return self._observe(self._episode, 0, self.sim.particles_state())[0]
 
-    def reset_population(self, designs: list[DesignFields | None], seed: int | None = None) -> list[np.ndarray]:
-        """Start one episode per design (None: the current design), all in one batched simulator."""
+    def reset_population(self, designs: list[DesignFields | None],
+                         seed: int | list[int] | None = None) -> list[np.ndarray]:
+        """Start one episode per design (None: the current design), all in one batched simulator.
+        The tasks are deterministic, so ``seed`` (one per design, or one for all) changes nothing."""
         members = [self.particles if design is None else self.design_particles(design) for design in designs]
         if self._batch is None or self._batch.counts != [m.n for m in members]:
             if self._batch is not None:

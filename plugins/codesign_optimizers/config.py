@@ -48,7 +48,9 @@ class CMAESConfig:
 class PPOConfig:
     """The paper's PPO settings (appendix "Reinforcement Learning") as defaults."""
 
-    optimize: str = field(default="control", metadata={"choices": MODES, "help": "PPO trains control only"})
+    optimize: str = field(default="control", metadata={
+        "choices": ["control"], "help": "PPO trains the controller only; the design stays as the representation "
+                                        "makes it (co-design it with diff_physics, cma_es or cppn_neat)"})
     total_timesteps: int = field(default=100_000, metadata={
         "ge": 1, "help": "environment steps in all (SB3 rounds the last iteration up to whole rollouts)"})
     timesteps_per_iteration: int = field(default=2048, metadata={
@@ -67,6 +69,11 @@ class PPOConfig:
     policy: str = field(default="mlp", metadata={
         "choices": ["mlp", "sine"],
         "help": "mlp: needs the mlp controller (output: action); sine: needs the sine controller"})
+    normalize: str = field(default="none", metadata={
+        "choices": ["none", "observations", "rewards", "both"],
+        "help": "running normalisation (SB3's VecNormalize) of what PPO trains on; observations are folded into "
+                "the controller's first layer, so it still acts on raw ones (not with policy: sine, which sees "
+                "only the time)"})
 
 
 @dataclass

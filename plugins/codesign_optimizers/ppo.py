@@ -12,12 +12,23 @@ SB3 trains a Gaussian policy whose *mean* is, by construction, exactly the recip
 PPO starts from the controller's (seeded) initial weights and, after every iteration, the actor's
 weights are copied back into the controller, so `best/controller.pt` and ``codesign eval`` replay
 the deterministic policy PPO learned, not an approximation of it.
+
+``normalize`` wraps the episodes in SB3's ``VecNormalize``. Its observation statistics are folded
+into the controller's first layer when the actor is copied (:class:`_Actor`), so the controller
+still acts on raw observations and equals the policy mean on normalised ones. That fold is affine,
+so observations are not clipped (``clip_obs=inf``; VecNormalize's default clips at 10 sigma, which
+no controller layer could reproduce): an observation far outside the statistics so far reaches
+the policy as a large input instead of a clipped one. Rewards are normalised (and clipped) as SB3
+does; they never reach the controller.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
+import random
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,8 +37,9 @@ import numpy as np
 import torch
 from stable_baselines3 import PPO as SB3PPO
 from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
-from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from codesign.artifacts import play
 from codesign.errors import RecipeError
@@ -38,6 +50,8 @@ from codesign_optimizers.config import PPOConfig
 LOSSES = ("policy_gradient_loss", "value_loss", "entropy_loss", "approx_kl", "clip_fraction", "explained_variance",
           "std")
 PRE_TANH_LIMIT = 100.0
+NORMALIZE_OBSERVATIONS = ("observations", "both")
+NORMALIZE_REWARDS = ("rewards", "both")
 
 
 def action_bound(controller: Controller, environment: Environment) -> float:
@@ -62,7 +76,8 @@ class EpisodesVecEnv(VecEnv):
     evaluation. SB3 clips samples to the finite Box +-PRE_TANH_LIMIT, where tanh is 1 in float64.
 
     Episode seeds come from the env's own generator (``episodes``), not from SB3's reset seeds, so
-    episodes are reproducible and checkpointable (``episodes.bit_generator.state``). Reaching the
+    episodes are reproducible and checkpointable (``episodes.bit_generator.state``); each reset
+    draws one per episode, so the members of a population differ where seeds matter. Reaching the
     horizon is a truncation; an earlier `done` a termination. Returns of finished episodes
     accumulate in ``returns``. With ``time_observation`` the observation is the time
     ``[step * control_dt]`` (open-loop policies).
@@ -96,10 +111,10 @@ class EpisodesVecEnv(VecEnv):
     def reset(self) -> np.ndarray:
         self.t = 0
         self.totals[:] = 0.0
-        seed = int(self.episodes.integers(2**31))
+        seeds = [int(s) for s in self.episodes.integers(2**31, size=self.num_envs)]
         if self.num_envs == 1:
-            return self._observe([self.env.reset(self.design, seed=seed)])
-        return self._observe(self.env.reset_population([self.design] * self.num_envs, seed=seed))
+            return self._observe([self.env.reset(self.design, seed=seeds[0])])
+        return self._observe(self.env.reset_population([self.design] * self.num_envs, seed=seeds))
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = self.bound * np.tanh(np.asarray(actions, dtype=np.float64))
@@ -170,7 +185,13 @@ class PPO(Optimizer):
 
     Every iteration starts a fresh episode and collects whole rollouts (`timesteps_per_iteration`
     must be a multiple of `n_steps`), so nothing lives between iterations except the policy, Adam,
-    the counters and the random generators: a resumed run continues exactly.
+    the counters, the normalisation statistics and the random generators: a resumed run continues
+    exactly.
+
+    SB3 draws from the global generators (python's `random`, numpy's, torch's) and its `seed=`
+    reseeds them all. PPO passes no seed; it keeps its own states of those generators (``random``,
+    seeded from the run's generator as SB3 would seed them) and swaps them in only around SB3's
+    calls (:meth:`_sb3_random`), so the caller's global generators are left as they were.
     """
 
     def __init__(self, config: PPOConfig) -> None:
@@ -181,6 +202,9 @@ class PPO(Optimizer):
             raise RecipeError(f"invalid recipe: optimizer.timesteps_per_iteration: {config.timesteps_per_iteration} "
                               f"is not a multiple of {size}; iterations must end on rollout boundaries so a "
                               "resumed run continues exactly")
+        if config.policy == "sine" and config.normalize in NORMALIZE_OBSERVATIONS:
+            raise RecipeError(f"invalid recipe: optimizer.normalize: {config.normalize!r} normalises observations, "
+                              "but optimizer.policy 'sine' observes only the time (allowed with it: none, rewards)")
         self.config = config
         self.iterations = math.ceil(config.total_timesteps / config.timesteps_per_iteration)
         self.iteration = 0
@@ -200,14 +224,20 @@ class PPO(Optimizer):
         self.design = representation()
         self.gym = EpisodesVecEnv(environment, self.design, action_bound(controller, environment), cfg.n_envs,
                                   episode_seed, time_observation=cfg.policy == "sine")
-        self.model = SB3PPO("MlpPolicy", self.gym, n_steps=cfg.n_steps,
-                            batch_size=cfg.batch_size, n_epochs=cfg.n_epochs, gamma=cfg.gamma,
-                            gae_lambda=cfg.gae_lambda, ent_coef=cfg.ent_coef, learning_rate=cfg.learning_rate,
-                            clip_range=cfg.clip_range, policy_kwargs=policy_kwargs, seed=ppo_seed, device="cpu",
-                            verbose=0)
+        self.normalizer = None if cfg.normalize == "none" else VecNormalize(
+            self.gym, norm_obs=cfg.normalize in NORMALIZE_OBSERVATIONS, norm_reward=cfg.normalize in NORMALIZE_REWARDS,
+            clip_obs=np.inf, gamma=cfg.gamma)  # no clipping: the fold into the controller is affine
+        self.random = {"python": random.Random(ppo_seed).getstate(),  # what SB3's seed=ppo_seed would set
+                       "numpy": np.random.RandomState(ppo_seed).get_state(),
+                       "torch": torch.Generator().manual_seed(ppo_seed).get_state()}
+        with self._sb3_random():
+            self.model = SB3PPO("MlpPolicy", self.gym if self.normalizer is None else self.normalizer,
+                                n_steps=cfg.n_steps, batch_size=cfg.batch_size, n_epochs=cfg.n_epochs, gamma=cfg.gamma,
+                                gae_lambda=cfg.gae_lambda, ent_coef=cfg.ent_coef, learning_rate=cfg.learning_rate,
+                                clip_range=cfg.clip_range, policy_kwargs=policy_kwargs, device="cpu", verbose=0)
         self.model.set_logger(Logger(folder=None, output_formats=[]))
         with torch.no_grad():  # PPO starts from the controller's own (seeded) initialisation
-            for dst, src in zip(self._sb3_params(), self.actor.to_sb3()):
+            for dst, src in zip(self._sb3_params(), self.actor.to_sb3(self._observation_stats())):
                 dst.copy_(src)
         self.best = BestKeeper(environment, controller, run_dir)
 
@@ -215,14 +245,44 @@ class PPO(Optimizer):
         layers = [m for m in self.model.policy.mlp_extractor.policy_net if isinstance(m, torch.nn.Linear)]
         return [p for m in [*layers, self.model.policy.action_net] for p in (m.weight, m.bias)]
 
+    @contextlib.contextmanager
+    def _sb3_random(self) -> Iterator[None]:
+        """PPO's own generator states in the global generators for an SB3 call, the caller's back after."""
+        caller = random.getstate(), np.random.get_state(), torch.get_rng_state()
+        random.setstate(self.random["python"])
+        np.random.set_state(self.random["numpy"])
+        torch.set_rng_state(self.random["torch"])
+        try:
+            yield
+        finally:
+            self.random = {"python": random.getstate(), "numpy": np.random.get_state(),
+                           "torch": torch.get_rng_state()}
+            random.setstate(caller[0])
+            np.random.set_state(caller[1])
+            torch.set_rng_state(caller[2])
+
+    def _observation_stats(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """(mean, std) VecNormalize scales observations with before the policy sees them; None: raw."""
+        if self.normalizer is None or not self.normalizer.norm_obs:
+            return None
+        rms = self.normalizer.obs_rms
+        return (torch.as_tensor(rms.mean, dtype=torch.float64),
+                torch.as_tensor(np.sqrt(rms.var + self.normalizer.epsilon), dtype=torch.float64))
+
+    def _copy_back(self) -> None:
+        """The actor's weights into the controller, the observation statistics folded in."""
+        with torch.no_grad():
+            self.actor.from_sb3([p.detach() for p in self._sb3_params()], self._observation_stats())
+
     def step(self) -> dict[str, float]:
         cfg, model = self.config, self.model
         self.gym.returns.clear()
         model._last_obs = None  # a fresh episode per iteration: nothing mid-episode outlives an iteration
         remaining = cfg.total_timesteps - model.num_timesteps
-        model.learn(min(cfg.timesteps_per_iteration, remaining), reset_num_timesteps=False, log_interval=None)
-        with torch.no_grad():
-            self.actor.from_sb3([p.detach() for p in self._sb3_params()])
+        with self._sb3_random():
+            model.learn(min(cfg.timesteps_per_iteration, remaining), reset_num_timesteps=False, log_interval=None)
+        self._copy_back()
+        # raw observations, past VecNormalize: its statistics stay as training left them
         record = play(self.environment, self.design, self.controller, seed=self.eval_seed)
         self.best.offer(record.episode_return, self.design, record, self.iteration)
         self.iteration += 1
@@ -236,13 +296,15 @@ class PPO(Optimizer):
         return metrics
 
     def state_dict(self) -> dict:
-        model = self.model
+        model, norm = self.model, self.normalizer
         return copy.deepcopy({
             "iteration": self.iteration, "best_return": self.best.best_return, "policy": model.policy.state_dict(),
             "adam": model.policy.optimizer.state_dict(), "num_timesteps": model.num_timesteps,
             "n_updates": model._n_updates, "episode_num": model._episode_num,
-            "episodes": self.gym.episodes.bit_generator.state, "numpy_random": np.random.get_state(),
-            "torch_random": torch.get_rng_state()})
+            "episodes": self.gym.episodes.bit_generator.state, "random": self.random,
+            "normalize": None if norm is None else {
+                "obs_rms": _rms_state(norm.obs_rms) if norm.norm_obs else None, "ret_rms": _rms_state(norm.ret_rms),
+                "returns": norm.returns}})
 
     def load_state_dict(self, state: dict) -> None:
         model = self.model
@@ -252,22 +314,50 @@ class PPO(Optimizer):
         model.num_timesteps, model._n_updates, model._episode_num = (
             state["num_timesteps"], state["n_updates"], state["episode_num"])
         self.gym.episodes.bit_generator.state = state["episodes"]
-        np.random.set_state(state["numpy_random"])
-        torch.set_rng_state(state["torch_random"])
-        with torch.no_grad():
-            self.actor.from_sb3([p.detach() for p in self._sb3_params()])
+        self.random = copy.deepcopy(state["random"])
+        if self.normalizer is not None:
+            norm = state["normalize"]
+            if self.normalizer.norm_obs:
+                _load_rms(self.normalizer.obs_rms, norm["obs_rms"])
+            _load_rms(self.normalizer.ret_rms, norm["ret_rms"])
+            self.normalizer.returns = np.array(norm["returns"])
+        self._copy_back()
+
+
+def _rms_state(rms: RunningMeanStd) -> dict:
+    """VecNormalize's running statistics as plain values, for checkpoints."""
+    return {"mean": rms.mean, "var": rms.var, "count": rms.count}
+
+
+def _load_rms(rms: RunningMeanStd, state: dict) -> None:
+    rms.mean, rms.var, rms.count = np.array(state["mean"]), np.array(state["var"]), state["count"]
 
 
 class _Actor:
-    """Maps the controller's parameters to SB3's actor ([W, b] per layer) and back."""
+    """Maps the controller's parameters to SB3's actor ([W, b] per layer) and back.
+
+    With observation statistics ``(mean, std)`` SB3's actor sees ``(obs - mean) / std`` and the
+    controller raw ``obs``, so the first layer is folded on the way back, ``W' = W / std`` (column
+    by column) and ``b' = b - W' @ mean``, and unfolded on the way in; both compute the same.
+    (Only ``policy: mlp``, whose first layer reads the observation, normalises observations.)
+    """
 
     def __init__(self, params: list[torch.Tensor], to_sb3, from_sb3) -> None:
         self.params, self._to, self._from = params, to_sb3, from_sb3
 
-    def to_sb3(self) -> list[torch.Tensor]:
-        return self._to(self.params)
+    def to_sb3(self, stats: tuple[torch.Tensor, torch.Tensor] | None = None) -> list[torch.Tensor]:
+        sb3 = self._to(self.params)
+        if stats is None:
+            return sb3
+        mean, std = stats
+        w = sb3[0].double()
+        return [w * std, sb3[1].double() + w @ mean, *sb3[2:]]
 
-    def from_sb3(self, sb3: list[torch.Tensor]) -> None:
+    def from_sb3(self, sb3: list[torch.Tensor], stats: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
+        if stats is not None:
+            mean, std = stats
+            w = sb3[0].double() / std
+            sb3 = [w, sb3[1].double() - w @ mean, *sb3[2:]]
         for p, v in zip(self.params, self._from(sb3)):
             p.copy_(v.to(p.dtype))
 
@@ -292,14 +382,16 @@ def _policy(policy: str, controller: Controller) -> tuple[_Actor, dict]:
                           f"(so `codesign eval` replays the learned policy); got {type(controller).__name__}")
     cfg, (alpha, beta) = controller.config, controller.parameters()
     n_basis = alpha.shape[1] * alpha.shape[2]
+    per_basis = beta.dim() == 3  # sine's bias: per_basis, beta (K, I, J) summed like alpha's terms; per_actuator (K,)
     kwargs = {"net_arch": {"pi": [], "vf": [64, 64]}, "features_extractor_class": SineBasis,
               "features_extractor_kwargs": {"frequencies": list(cfg.frequencies), "phases": cfg.phases}}
 
     def to_sb3(ps: list[torch.Tensor]) -> list[torch.Tensor]:
-        return [ps[0].detach().reshape(len(ps[0]), -1).float(), ps[1].detach().sum(dim=(1, 2)).float()]
+        bias = ps[1].detach().sum(dim=(1, 2)) if per_basis else ps[1].detach()
+        return [ps[0].detach().reshape(len(ps[0]), -1).float(), bias.float()]
 
-    def from_sb3(ps: list[torch.Tensor]) -> list[torch.Tensor]:  # the bias spread evenly over beta's entries
-        return [ps[0].reshape(alpha.shape), (ps[1] / n_basis)[:, None, None].expand(beta.shape)]
+    def from_sb3(ps: list[torch.Tensor]) -> list[torch.Tensor]:  # per_basis: the bias spread evenly over beta
+        return [ps[0].reshape(alpha.shape), (ps[1] / n_basis)[:, None, None].expand(beta.shape) if per_basis else ps[1]]
 
     return _Actor([alpha, beta], to_sb3, from_sb3), kwargs
 
