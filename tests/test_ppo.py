@@ -150,11 +150,9 @@ def test_the_sine_policy_head_is_the_sine_controller(bias):
     from codesign_basics.sine import SineController
     from codesign_optimizers.ppo import _policy
 
-    controller = SineController(SineConfig(frequencies=[6.0, 12.0], phases=3))
+    controller = SineController(SineConfig(frequencies=[6.0, 12.0], phases=3, bias=bias))
     controller.setup(2, 3, 0.01, np.random.default_rng(0))
     with torch.no_grad():
-        if bias == "per_actuator":
-            controller.beta = torch.zeros(2, requires_grad=True)
         controller.beta.copy_(torch.randn(controller.beta.shape, generator=torch.Generator().manual_seed(0)))
         actor, _ = _policy("sine", controller)
         w, b = (p.clone() for p in actor.to_sb3())

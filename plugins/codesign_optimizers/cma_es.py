@@ -12,7 +12,7 @@ from torch.nn.utils import parameters_to_vector, vector_to_parameters
 from codesign.artifacts import EpisodeRecord, play_population
 from codesign.errors import DesignError, RecipeError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
-from codesign_optimizers.common import BestKeeper, candidate, parameter_groups
+from codesign_optimizers.common import BestKeeper, candidate, fewest_to_tell, parameter_groups
 from codesign_optimizers.config import CMAESConfig
 
 ASK_ROUNDS = 5
@@ -85,7 +85,7 @@ class CMAES(Optimizer):
     def _play_generation(self) -> tuple[list[np.ndarray], list[EpisodeRecord], int]:
         """At least mu, at most a population of played candidates, their records, and how many were refused."""
         seed = int(self.rng.integers(2**31))  # one episode seed per generation: candidates compare on equal terms
-        mu, popsize = self.es.sp.weights.mu, self.es.popsize
+        mu, popsize = fewest_to_tell(self.es), self.es.popsize
         solutions, records, asked, refused = [], [], 0, 0
         for _ in range(ASK_ROUNDS):
             candidates = self.es.ask(popsize - len(solutions))  # a first population, then what it lacks

@@ -69,3 +69,9 @@ def candidate(representation: Representation, controller: Controller, params: li
         with torch.no_grad():
             vector_to_parameters(torch.as_tensor(x, dtype=params[0].dtype), params)
     return frozen_design(representation), copy.deepcopy(controller)
+
+
+def fewest_to_tell(es) -> int:
+    """The fewest evaluated candidates pycma's `tell` accepts: its mu (the parents of the next
+    mean), and never under what its population-size check allows (3 with the mirrored samples)."""
+    return max(es.sp.weights.mu, 3 - es.sp.lam_mirr)

@@ -19,7 +19,7 @@ from torch.nn.utils import parameters_to_vector, vector_to_parameters
 from codesign.artifacts import BEST, EpisodeRecord, play_population
 from codesign.errors import RecipeError
 from codesign.interfaces import Controller, DesignFields, DesignSpace, Environment, Optimizer, Representation
-from codesign_optimizers.common import BestKeeper, candidate, frozen_design, parameter_groups
+from codesign_optimizers.common import BestKeeper, candidate, fewest_to_tell, frozen_design, parameter_groups
 from codesign_optimizers.config import CPPNNEATConfig
 
 GENOME_FILE = "genome.pkl"
@@ -203,7 +203,7 @@ class CPPNNEAT(Optimizer):
             for genome, f in zip(self.brain.genomes(), neat_fitness(brain_returns)):
                 genome.fitness = f
         played = [(x, r) for x, r in zip(xs, brain_returns) if not math.isnan(r)]
-        if self.es is not None and len(played) >= self.es.sp.weights.mu:  # pycma's update needs mu
+        if self.es is not None and len(played) >= fewest_to_tell(self.es):
             self.es.tell([x for x, _ in played], [-r for _, r in played])  # cma minimises
             with torch.no_grad():  # leave the controller at the distribution's bounded mean
                 vector_to_parameters(torch.as_tensor(self.es.result.xfavorite, dtype=self.params[0].dtype),
