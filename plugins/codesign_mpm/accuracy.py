@@ -265,10 +265,12 @@ def gait(frame: int, k: int, amplitude: float = 0.3, hz: float = 4.0) -> np.ndar
 
 def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[float] = None, arch: str = "cpu",
               flip: Optional[float] = None, terrain_height: float = 0.13, contact: str = "nodes",
-              settled: bool = False):
+              settled: bool = False, pic_time: Optional[float] = None, terrain: Optional[dict] = None):
     """The registered environment at setting `s`; terrain at `terrain_height` (0.13 is above the wall
     band down to dx 1/24) with the preset's friction unless `friction` is given; `flip`: the robot's
-    FLIP share (None: the environment's default); `contact`: the terrain's (nodes or surface);
+    FLIP share (None: the environment's default) and `pic_time` its PIC share as a time (None: per
+    substep); `contact`: the terrain's (nodes, surface or spring), `terrain` more of its keys (e.g.
+    contact_stiffness);
     `settled`: the robot starts at rest under its weight (`robot.settled`), else stress-free."""
     from codesign_mpm.config import FLIP_DEFAULT, PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
     from codesign_mpm.env import LocomotionEnv
@@ -276,9 +278,9 @@ def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[flo
     preset = PRESETS[environment]
     config = PRESET_CONFIGS[environment](
         dx=s.dx, cfl=s.cfl, dtype=s.dtype, horizon=horizon, checkpoint_every=s.checkpoint_every, arch=arch,
-        flip=FLIP_DEFAULT if flip is None else flip,
+        flip=FLIP_DEFAULT if flip is None else flip, pic_time=pic_time,
         terrain=TerrainConfig(height=terrain_height, friction=preset.friction if friction is None else friction,
-                              contact=contact),
+                              contact=contact, **(terrain or {})),
         robot=RobotConfig(youngs_modulus=preset.robot_youngs_modulus, particles_per_cell=s.particles_per_cell,
                           position=[0.35, 0.25], settled=settled))
     if config.cover is not None:

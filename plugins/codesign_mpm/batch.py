@@ -20,6 +20,7 @@ from dataclasses import replace
 import numpy as np
 
 from codesign_mpm.engine import Layout, Rollout, Simulator, TimeStep, time_step
+from codesign_mpm.engine.simulator import flip_share
 from codesign_mpm.sampling import Particles
 from codesign_mpm.scene import Scene
 
@@ -86,7 +87,9 @@ class BatchSimulator(Simulator):
         """Each member's substeps for the next frame (and so its dt), written only when they change."""
         if substeps != self._member_substeps:
             self._member_substeps = substeps
-            self.k.member_dt.from_numpy(np.array([self.scene.frame_dt / n for n in substeps], self.np_real))
+            dts = [self.scene.frame_dt / n for n in substeps]
+            self.k.member_dt.from_numpy(np.array(dts, self.np_real))
+            self.k.member_flip.from_numpy(np.array([flip_share(self.scene, dt) for dt in dts], self.np_real))
             self.k.member_substeps.from_numpy(np.array(substeps, np.int32))
 
     def _plan_frame(self) -> int:

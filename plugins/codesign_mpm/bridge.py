@@ -80,7 +80,7 @@ def simulate(sim: Simulator, actions: torch.Tensor, *, volume: torch.Tensor | No
     return _Rollout.apply(sim, checkpoint_every, actions, volume, youngs_modulus, muscle, fiber, x0, v0)
 
 
-STATE_FIELDS = ("x", "v", "C", "F", "Jp")
+STATE_FIELDS = ("x", "v", "C", "F", "Jp", "u")  # u: the spring contact's tangential springs (zeros elsewhere)
 
 
 class _Frame(torch.autograd.Function):
@@ -90,10 +90,10 @@ class _Frame(torch.autograd.Function):
     sums their gradients over the steps."""
 
     @staticmethod
-    def forward(ctx, sim: Simulator, checkpoint_every, action, x, v, C, F, Jp, *design):
+    def forward(ctx, sim: Simulator, checkpoint_every, action, x, v, C, F, Jp, u, *design):
         ctx.sim, ctx.checkpoint_every = sim, checkpoint_every
         ctx.actions = action.detach().cpu().numpy()[None]
-        ctx.start = State(*(t.detach().cpu().numpy() for t in (x, v, C, F, Jp)))
+        ctx.start = State(*(t.detach().cpu().numpy() for t in (x, v, C, F, Jp, u)))
         ctx.snapshot = sim.snapshot()
         out = sim.rollout(ctx.actions, checkpoint_every=checkpoint_every, start=ctx.start)
         ctx.rollout_id = sim.rollouts
@@ -113,12 +113,13 @@ class _Frame(torch.autograd.Function):
 
         return (None, None, dev(grads.actions[0]),
                 *(dev(g) for g in (grads.x0, grads.v0, grads.C0, grads.F0, grads.Jp0)),
+                dev(grads.u0 if grads.u0 is not None else np.zeros_like(grads.x0)),
                 *(dev(getattr(grads, name)) for name in DESIGN_INPUTS))
 
 
 def step_frame(sim: Simulator, state: tuple[torch.Tensor, ...], action: torch.Tensor,
                design: tuple[torch.Tensor, ...], checkpoint_every: int | None = None) -> tuple[torch.Tensor, ...]:
-    """Differentiable control step: state (x, v, C, F, Jp) -> the state one frame later, holding
+    """Differentiable control step: state (x, v, C, F, Jp, u) -> the state one frame later, holding
     `action`, for the design (volume, youngs_modulus, muscle, fiber), applied to `sim` (a no-op
     when it is already its design)."""
     sim.set_design(**{name: t.detach().cpu().numpy() for name, t in zip(DESIGN_INPUTS, design)})

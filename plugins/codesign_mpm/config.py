@@ -141,9 +141,16 @@ class TerrainConfig:
         default=None, metadata={"ge": 0, "help": "Coulomb coefficient; null = the environment's own"}
     )
     contact: str = field(default="nodes", metadata={
-        "choices": ["nodes", "surface"],
+        "choices": ["nodes", "surface", "spring"],
         "help": "nodes: hold the grid nodes below the surface; surface: contact at the exact surface, "
-                "whatever its height within a cell (docs/contact.md section 15)"})
+                "whatever its height within a cell (docs/contact.md section 15); spring: at the exact "
+                "surface, a spring-damper of physical stiffness with friction that remembers (a tangential "
+                "spring per particle, capped by Coulomb)"})
+    contact_stiffness: float = field(default=2.0e6, metadata={
+        "gt": 0, "help": "spring: normal stiffness per unit contact area, Pa/m; a body of weight W on area A "
+                         "sinks W / (A stiffness); the tangential spring is as stiff"})
+    contact_damping: float = field(default=1.0, metadata={
+        "ge": 0, "help": "spring: damping ratio of each particle's contact, normal and tangential (1: critical)"})
 
 
 def _vector(default: list[float], help: str) -> Any:
@@ -214,6 +221,10 @@ class LocomotionConfig:
         "ge": 0, "lt": 1, "help": "FLIP's share in the robot's velocity update: a particle keeps its own velocity plus "
                                   "the grid's change, so a gait converges as the step shrinks; 0 is APIC alone, which "
                                   "damps once per substep (docs/contact.md sections 10-11)"})
+    pic_time: Optional[float] = field(default=None, metadata={
+        "gt": 0, "help": "the PIC share as a time constant, s: each substep keeps FLIP's share exp(-dt / pic_time), "
+                         "so the damping per second does not grow with the number of substeps (0.265 is flip 0.99 at "
+                         "the quick start's 2.7 ms step); null: flip per substep"})
     adaptive_dt: bool = field(default=True, metadata={
         "help": "each frame takes as many substeps as its state needs (speeds, stretch-stiffened materials), never "
                 "fewer than at rest; false: the step at rest throughout"})

@@ -138,7 +138,8 @@ def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
         dx=config.dx,
         terrain=TerrainSpec(kind=t.kind, height=t.height, amplitude=t.amplitude, frequency=t.frequency,
                             seed=t.seed, friction=preset.friction if t.friction is None else t.friction,
-                            contact=t.contact),
+                            contact=t.contact, contact_stiffness=t.contact_stiffness,
+                            contact_damping=t.contact_damping),
         bodies=[BodySpec(
             name="robot",
             shape=shape,
@@ -154,6 +155,7 @@ def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
         frame_dt=config.frame_dt,
         cfl=config.cfl,
         flip=config.flip,
+        pic_time=config.pic_time,
         adaptive_dt=config.adaptive_dt,
         dtype=config.dtype,
         arch=config.arch,

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from codesign.interfaces import Controller, DesignFields
-from codesign_mpm.bridge import simulate, step_frame
+from codesign_mpm.bridge import STATE_FIELDS, simulate, step_frame
 from codesign_mpm.protocols import EpisodeEnvironment
 from codesign_mpm.sampling import Particles
 from codesign_mpm.tasks import RobotFrame
@@ -93,7 +93,8 @@ def run_episode(env: EpisodeEnvironment, design: DesignFields, controller: Contr
                                for t in range(1, T + 1)])
         com = com_x.detach().numpy()
     else:
-        state = tuple(torch.as_tensor(start[key], dtype=DTYPE) for key in ("x", "v", "C", "F", "Jp"))
+        springs = {"u": np.zeros((len(start["x"]), 3))}  # no contact has stuck yet
+        state = tuple(torch.as_tensor({**start, **springs}[key], dtype=DTYPE) for key in STATE_FIELDS)
         cover_x = None
         before = weights @ state[0][:n]  # the centre of mass a step earlier (differentiable in the design)
         rewards, coms, actions = [], [before.detach().numpy()], []

@@ -20,7 +20,7 @@ TERRAIN_KINDS = ("none", "flat", "incline", "perlin")
 DTYPES = ("float32", "float64")
 ARCHS = ("cpu", "cuda", "gpu", "vulkan", "metal")
 GRID_REGIONS = ("bbox", "full")
-TERRAIN_CONTACTS = ("nodes", "surface")
+TERRAIN_CONTACTS = ("nodes", "surface", "spring")
 
 
 class SceneError(ValueError):
@@ -113,8 +113,12 @@ class TerrainSpec:
     octaves: int = 3
     seed: int = 0
     # nodes: the nodes below the surface are held (fast; where the surface falls within a cell moves a
-    # gait's distance by up to a third); surface: contact at the exact surface (docs/contact.md section 15)
+    # gait's distance by up to a third); surface: contact at the exact surface (docs/contact.md section 15);
+    # spring: at the exact surface, a spring-damper of physical stiffness whose friction remembers
+    # (engine/contact.py)
     contact: str = "nodes"
+    contact_stiffness: float = 2.0e6  # spring: normal stiffness per unit contact area, Pa/m (= N/m^3)
+    contact_damping: float = 1.0  # spring: damping ratio of a particle's contact (1: critical)
 
 
 @dataclass
@@ -131,6 +135,8 @@ class Scene:
     # FLIP's share in the elastic bodies' velocity update; 0, APIC alone, conserves angular momentum
     # exactly. The locomotion environment's default is config.FLIP_DEFAULT (docs/contact.md sections 10-11)
     flip: float = 0.0
+    # the PIC share as a time: each substep keeps exp(-dt / pic_time) of FLIP (None: `flip` per substep)
+    pic_time: Optional[float] = None
     dt: Optional[float] = None  # force a (smaller) substep
     allow_unstable_dt: bool = False  # accept a dt above the CFL bound (you were warned)
     adaptive_dt: bool = True  # each frame takes as many substeps as its state needs (speeds, stretch); never fewer than at rest
@@ -183,6 +189,8 @@ def validate_scene(scene: Scene) -> None:
         _fail("cfl", scene.cfl, "must be in (0, 1]; 0.3 to 0.5 is typical")
     if not 0 <= scene.flip < 1:
         _fail("flip", scene.flip, "must be in [0, 1): 0 is APIC alone, 0.99 converges in time")
+    if scene.pic_time is not None and not scene.pic_time > 0:
+        _fail("pic_time", scene.pic_time, "must be > 0 seconds (or null for flip's share per substep)")
     if scene.dt is not None and not scene.dt > 0:
         _fail("dt", scene.dt, "must be > 0 (or null to derive it from the CFL condition)")
     for key, value, allowed in (("dtype", scene.dtype, DTYPES), ("arch", scene.arch, ARCHS),
@@ -195,6 +203,10 @@ def validate_scene(scene: Scene) -> None:
     t = scene.terrain
     if t.friction < 0:
         _fail("terrain.friction", t.friction, "must be >= 0")
+    if not t.contact_stiffness > 0:
+        _fail("terrain.contact_stiffness", t.contact_stiffness, "must be > 0 (Pa/m: pressure per metre of depth)")
+    if not t.contact_damping >= 0:
+        _fail("terrain.contact_damping", t.contact_damping, "must be >= 0 (a damping ratio; 1 is critical)")
     if t.kind != "none" and not 0 <= t.height < scene.size[1]:
         _fail("terrain.height", t.height, f"must be in [0, {scene.size[1]})")
     if not -60 <= t.slope_deg <= 60:

@@ -81,6 +81,8 @@ def check_every_input(name: str, **overrides) -> None:
                 cases.append(("youngs_modulus", under, 1e-6 * p.youngs_modulus[under]))
             if COVERS[name] == "snow":  # snow's plastic volume ratio is state too (settled: compacted)
                 cases.append(("Jp0", under, 1e-6))
+        if g.u0 is not None:  # the spring contact's tangential springs are state too
+            cases += [("u0", (foot, 0), 1e-6), ("u0", (foot, 2), 1e-6)]
 
         def perturbed(field, index, eps):
             sim.restore(start)
@@ -88,8 +90,9 @@ def check_every_input(name: str, **overrides) -> None:
                 a = actions.copy()
                 a[index] += eps
                 return loss(a)
-            if field in ("C0", "Jp0"):
-                value = np.zeros((p.n, 3, 3)) if field == "C0" else env.initial_state(p)["Jp"].copy()
+            if field in ("C0", "Jp0", "u0"):
+                value = {"C0": lambda: np.zeros((p.n, 3, 3)), "u0": lambda: np.zeros((p.n, 3)),
+                         "Jp0": lambda: env.initial_state(p)["Jp"].copy()}[field]()
                 value[index] += eps
                 sim.set_initial_state(**{field[:-1]: value})
                 return loss()

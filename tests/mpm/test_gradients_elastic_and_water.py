@@ -29,6 +29,16 @@ VARIANTS = {
     # the surface contact (opt-in): its impulse and scatter kernels' adjoints and p2g's term, on a slope with FLIP
     "ground with the surface contact": ("ground", dict(flip=0.99, terrain=TerrainConfig(
         kind="perlin", height=0.1, amplitude=0.03, frequency=6.0, friction=0.5, contact="surface"))),
+    # the spring contact (opt-in): its impulse kernel's adjoint, the springs carried between substeps and
+    # segments (u0), on a slope with FLIP's share per unit time
+    "ground with the spring contact": ("ground", dict(flip=0.99, pic_time=0.265, terrain=TerrainConfig(
+        kind="perlin", height=0.1, amplitude=0.03, frequency=6.0, friction=0.5, contact="spring"))),
+    # ... every contact stuck (mu 5: the springs follow the contact points), every contact slipping (mu 0.02: the
+    # springs at Coulomb's bound)
+    "the spring contact sticking": ("ground", dict(pic_time=0.265, terrain=TerrainConfig(
+        height=0.1, friction=5.0, contact="spring"))),
+    "the spring contact slipping": ("ground", dict(pic_time=0.265, terrain=TerrainConfig(
+        height=0.1, friction=0.02, contact="spring"))),
     # every preset's water is inviscid: the viscous stress's gradient otherwise goes unchecked
     "viscous shallow water": ("shallow_water", dict(cover=CoverConfig(kind="water", thickness=0.05,
                                                                       bulk_modulus=1e5, viscosity=20.0))),

@@ -152,6 +152,7 @@ class Gradients:
     F0: np.ndarray  # (N, 3, 3) initial deformation gradient
     C0: np.ndarray  # (N, 3, 3) initial affine velocity (APIC)
     Jp0: np.ndarray  # (N,) initial plastic volume ratio (zeros without snow)
+    u0: np.ndarray | None = None  # (N, 3) initial tangential springs of the spring contact (None: another contact)
 
 
 @dataclass
@@ -163,6 +164,7 @@ class State:
     C: np.ndarray  # (N, 3, 3)
     F: np.ndarray  # (N, 3, 3)
     Jp: np.ndarray  # (N,) snow's plastic volume ratio (ones elsewhere)
+    u: np.ndarray | None = None  # (N, 3) the spring contact's tangential springs (None: none stuck)
 
 
 @dataclass
@@ -175,6 +177,13 @@ class Rollout:
     v: np.ndarray  # (N, 3)
     final: State  # the whole state after T frames (float64)
 
+
+
+def flip_share(scene: Scene, dt: float) -> float:
+    """FLIP's share in a substep of `dt`: `scene.flip` per substep, or with `scene.pic_time`
+    exp(-dt / pic_time), so the PIC share damps a particle's own velocity at a rate per unit time
+    whatever the number of substeps."""
+    return scene.flip if scene.pic_time is None else math.exp(-dt / scene.pic_time)
 
 
 def _model_runs(material: np.ndarray) -> list[tuple[int, int, int]]:
@@ -240,14 +249,16 @@ class Simulator:
             boundary_cells=scene.boundary_cells,
             requires_grad=requires_grad,
             scatter_copies=runtime.scatter_copies(),
-            has_flip=scene.flip > 0 and any(m in flip_models() for m in models),
-            surface_contact=scene.terrain.kind != "none" and scene.terrain.contact == "surface",
+            has_flip=(scene.flip > 0 or scene.pic_time is not None) and any(m in flip_models() for m in models),
+            surface_contact=scene.terrain.kind != "none" and scene.terrain.contact in ("surface", "spring"),
+            contact_memory=scene.terrain.kind != "none" and scene.terrain.contact == "spring",
         ))
         self.k = _acquire(self.layout)
         self._generation = runtime.generation
         self._finalizer = weakref.finalize(self, _release, self._generation, self.k)
         self._initial_CF: tuple[np.ndarray, np.ndarray] | None = None
         self._initial_jp: np.ndarray | None = None
+        self._initial_u: np.ndarray | None = None
         self.rollouts = 0
         self._grid_store = self._grid_boxes = None  # the segment's grids, kept for the reverse pass
         self._largest_box = 0  # nodes of the largest box a backward pass saw: the next records hold it
@@ -282,8 +293,11 @@ class Simulator:
         k.dx[None] = s.dx
         k.gravity[None] = s.gravity
         k.friction[None] = s.terrain.friction
+        if k.contact_memory:
+            k.contact_stiffness[None] = s.terrain.contact_stiffness
+            k.contact_damping[None] = s.terrain.contact_damping
         if k.has_flip:
-            k.flip_ratio[None] = s.flip
+            k.flip_ratio[None] = flip_share(s, self.dt)
         h = height_map(s)
         k.height.from_numpy(h.astype(self.np_real))
         k.normal.from_numpy(normals(h, s.dx).astype(self.np_real))
@@ -308,7 +322,7 @@ class Simulator:
                 raise ValueError("reset() needs particles with the same count, actuators and "
                                  "material models as the simulator was built for")
             self._initial_CF = None
-            self._initial_jp = None
+            self._initial_jp = self._initial_u = None
             self._use(particles)
         self._changes += 1
         p, r, k = self.particles, self.np_real, self.k
@@ -334,6 +348,8 @@ class Simulator:
         k._load_state(0, self.n, *(np.ascontiguousarray(a, dtype=r) for a in (p.x, p.v, C0, F0)))
         if k.has_jp:
             k._load_jp(0, self.n, (np.ones(self.n) if self._initial_jp is None else self._initial_jp).astype(r))
+        if k.contact_memory:  # no contact has stuck yet, unless set_initial_state says so
+            k._load_u(0, self.n, (np.zeros((self.n, 3)) if self._initial_u is None else self._initial_u).astype(r))
         self.frame = 0
         self.frame_substeps: list[int] = []  # substeps each frame since the reset took
         k.work[None] = 0.0
@@ -349,12 +365,12 @@ class Simulator:
         self.timestep = timestep
         self._set_dt(timestep.dt)
 
-    def set_initial_state(self, x=None, v=None, C=None, F=None, Jp=None) -> None:
+    def set_initial_state(self, x=None, v=None, C=None, F=None, Jp=None, u=None) -> None:
         """Replace parts of the initial state (numpy, live particles only) and reset to it.
 
-        Positions and velocities default to the particles'; C to zero, F to identity and the
-        plastic volume ratio `Jp` (snow only; all ones is accepted anywhere) to one. A faster start
-        gets a smaller time step.
+        Positions and velocities default to the particles'; C to zero, F to identity, the
+        plastic volume ratio `Jp` (snow only; all ones is accepted anywhere) to one and the spring
+        contact's tangential springs `u` (N, 3) to zero. A faster start gets a smaller time step.
         """
         if Jp is not None and not self.k.has_jp:
             if not np.all(np.asarray(Jp) == 1.0):
@@ -366,6 +382,8 @@ class Simulator:
             self._use(replace(self.particles, **given))
         if Jp is not None:
             self._initial_jp = np.asarray(Jp, dtype=np.float64).reshape(self.n).copy()
+        if u is not None:
+            self._initial_u = np.asarray(u, dtype=np.float64).reshape(self.n, 3).copy()
         if C is not None or F is not None:
             C0, F0 = self._initial_CF or (np.zeros((self.n, 3, 3)), np.tile(np.eye(3), (self.n, 1, 1)))
             self._initial_CF = (C0 if C is None else np.asarray(C, dtype=np.float64).reshape(self.n, 3, 3).copy(),
@@ -395,11 +413,11 @@ class Simulator:
 
     def snapshot(self) -> tuple:
         """Everything a rollout starts from (design, initial state); see `restore`."""
-        return self.particles, self._initial_CF, self._initial_jp
+        return self.particles, self._initial_CF, self._initial_jp, self._initial_u
 
     def restore(self, snapshot: tuple) -> None:
         """Return to a `snapshot`: its design and initial state, with their time step."""
-        particles, self._initial_CF, self._initial_jp = snapshot
+        particles, self._initial_CF, self._initial_jp, self._initial_u = snapshot
         if particles is not self.particles:  # same design: keep its time step (no CFL pass over the particles)
             self._use(particles)
         self.reset()
@@ -466,11 +484,15 @@ class Simulator:
             self.k._sum_copies(False)
         self.k._grid_op()
         if self.k.surface_contact:
-            self._surface_contact(s)
+            self._surface_contact(s, so)
 
-    def _surface_contact(self, s: int) -> None:
-        """The surface contact's impulses at slot s, from the updated grid and added to it (contact.py)."""
-        self.k._contact_impulse(s, self.n)
+    def _surface_contact(self, s: int, so: int) -> None:
+        """The surface contact's impulses at slot s, from the updated grid and added to it, and the
+        spring contact's springs into slot so (contact.py)."""
+        if self.k.contact_memory:
+            self.k._spring_impulse(s, so, self.n)
+        else:
+            self.k._contact_impulse(s, self.n)
         self.k._contact_scatter(s, self.n, 1.0)
 
     def _stress_update(self, s: int, so: int, t: int, j: int = 0) -> None:
@@ -491,7 +513,7 @@ class Simulator:
                 self.k._contact_flags(s, self.n)
             self.k._grid_op()
             if self.k.surface_contact:
-                self._surface_contact(s)
+                self._surface_contact(s, s + 1)
         else:
             self._grid_update(s, s + 1, t)
         self.k._clear_grid_grad()
@@ -502,7 +524,10 @@ class Simulator:
             self.k._clear_impulse_grad(self.n)
             self.k._contact_scatter.grad(s, self.n, 1.0)
             self.k._contact_scatter(s, self.n, -1.0)
-            self.k._contact_impulse.grad(s, self.n)
+            if self.k.contact_memory:
+                self.k._spring_impulse.grad(s, s + 1, self.n)
+            else:
+                self.k._contact_impulse.grad(s, self.n)
         self.k._grid_op.grad()
         self.k._p2g_adjoint(s, self.n)
         for model, start, end in self._runs:
@@ -523,6 +548,8 @@ class Simulator:
         if getattr(self, "dt", None) != dt:
             self.k.dt[None] = dt
             self.dt = dt
+            if self.k.has_flip:
+                self.k.flip_ratio[None] = flip_share(self.scene, dt)
 
     def _substeps_for(self, wave: float, at_rest: TimeStep) -> int:
         """Substeps a frame needs for a state whose fastest wave plus particle speed is `wave`: its CFL
@@ -626,14 +653,27 @@ class Simulator:
         out[~np.isin(self.particles.material, tracked)] = 1.0  # only snow particles keep J_p up to date
         return out
 
+    def contact_springs(self, slot: int | None = None) -> np.ndarray:
+        """(N, 3) the spring contact's tangential springs (each particle's displacement since its
+        contact point stuck); zeros with another contact."""
+        out = np.zeros((self.n, 3), self.np_real)
+        if self.k.contact_memory:
+            self.k._save_u(self._slot if slot is None else slot, self.n, out)
+        return out
+
     def _state(self, slot: int) -> tuple[np.ndarray, ...]:
-        """Everything a checkpoint must hold: (x, v, C, F) and, with snow, J_p."""
-        return self.particles_state(slot) + ((self.plastic_volume_ratio(slot),) if self.k.has_jp else ())
+        """Everything a checkpoint must hold: (x, v, C, F), then J_p with snow and the contact's
+        springs with the spring contact."""
+        return (self.particles_state(slot) + ((self.plastic_volume_ratio(slot),) if self.k.has_jp else ())
+                + ((self.contact_springs(slot),) if self.k.contact_memory else ()))
 
     def _load(self, slot: int, state: tuple[np.ndarray, ...]) -> None:
+        """Load a checkpoint (`_state`'s tuple) into `slot`."""
         self.k._load_state(slot, self.n, *state[:4])
         if self.k.has_jp:
             self.k._load_jp(slot, self.n, state[4])
+        if self.k.contact_memory:
+            self.k._load_u(slot, self.n, state[-1])
 
     # ------------------------------------------------------------------ differentiable rollout
     def rollout(self, actions: np.ndarray, checkpoint_every: int | None = None, start: State | None = None
@@ -660,8 +700,9 @@ class Simulator:
         self.rollouts += 1  # lets callers (the torch bridge) tell whether backward() is still theirs
         self.reset()
         if start is not None:
+            springs = np.zeros((self.n, 3)) if start.u is None else start.u
             self._load(0, tuple(np.ascontiguousarray(a, dtype=self.np_real) for a in
-                                (start.x, start.v, start.C, start.F, start.Jp)))
+                                (start.x, start.v, start.C, start.F, start.Jp, springs)))
         act = np.zeros((self.max_frames + 1, max(self.n_actuators, 1)))
         act[:T, :self.n_actuators] = actions
         self.k.act.from_numpy(act.astype(self.np_real))
@@ -697,7 +738,8 @@ class Simulator:
         self._slot = s
         self._segment_in_slots = len(self._checkpoints) - 1 if keep else None  # backward need not recompute it
         self._final = self._state(self._slot)  # where backward() leaves the simulator
-        final = State(*(a.astype(np.float64) for a in (*self._final[:4], self.plastic_volume_ratio(self._slot))))
+        final = State(*(a.astype(np.float64) for a in (*self._final[:4], self.plastic_volume_ratio(self._slot),
+                                                       self.contact_springs(self._slot))))
         self._rollout_changes = self._changes
         self.frame = T
         self._tracked_mass = float(self._probe_density @ self.particles.volume)
@@ -726,11 +768,12 @@ class Simulator:
         """True while nothing changed the simulator since the last rollout, so backward() may run."""
         return self._changes == self._rollout_changes
 
-    def backward(self, com_x=None, com_v=None, x=None, v=None, C=None, F=None, Jp=None) -> Gradients:
+    def backward(self, com_x=None, com_v=None, x=None, v=None, C=None, F=None, Jp=None, u=None) -> Gradients:
         """Back-propagate d loss / d outputs of the last `rollout` to its inputs (repeatable).
 
         `com_x`, `com_v` (T+1, 3) and the final particles' `x`, `v` (N, 3), `C`, `F` (N, 3, 3)
-        and `Jp` (N,) are the loss's gradients with respect to those outputs (None: zero). Each segment is
+        `Jp` (N,) and the contact's springs `u` (N, 3) are the loss's gradients with respect to those outputs
+        (None: zero). Each segment is
         recomputed from its checkpoint, then differentiated substep by substep in reverse; the
         gradient of a segment's first state carries into the previous one.
         """
@@ -758,7 +801,8 @@ class Simulator:
         def seed(g, shape):
             return np.ascontiguousarray(np.zeros(shape) if g is None else np.reshape(g, shape), dtype=r)
 
-        carry = (seed(x, (n, 3)), seed(v, (n, 3)), seed(C, (n, 3, 3)), seed(F, (n, 3, 3)), seed(Jp, (n,)))
+        carry = (seed(x, (n, 3)), seed(v, (n, 3)), seed(C, (n, 3, 3)), seed(F, (n, 3, 3)), seed(Jp, (n,)),
+                 seed(u, (n, 3)))
         total = len(frame_of)
         last_of_frame = set(np.cumsum(substeps) - 1)  # substeps after which a frame's probe ran
         starts = list(range(0, total, S))
@@ -774,11 +818,14 @@ class Simulator:
             boxes = self._grid_boxes.to_numpy()[:L]
             kept = boxes[:, 6] == 1
             self._largest_box = max(self._largest_box, int(np.prod(boxes[:, 3:6] - boxes[:, :3], axis=1).max()))
-            for f in (self.k.x, self.k.v, self.k.C, self.k.F) + ((self.k.Jp,) if self.k.has_jp else ()):
+            for f in ((self.k.x, self.k.v, self.k.C, self.k.F) + ((self.k.Jp,) if self.k.has_jp else ())
+                      + ((self.k.u,) if self.k.contact_memory else ())):
                 f.grad.fill(0)
             self.k._add_grad(L, n, *carry[:4])
             if self.k.has_jp:
                 self.k._add_jp_grad(L, n, carry[4])
+            if self.k.contact_memory:
+                self.k._add_u_grad(L, n, carry[5])
             for s in reversed(range(L)):
                 g = g0 + s
                 t = frame_of[g]
@@ -789,10 +836,12 @@ class Simulator:
             if g0 == 0:
                 self.k._probe.grad(0, 0, n)
             carry = (np.empty((n, 3), r), np.empty((n, 3), r), np.empty((n, 3, 3), r), np.empty((n, 3, 3), r),
-                     np.zeros(n, r))
+                     np.zeros(n, r), np.zeros((n, 3), r))
             self.k._save_grad(0, n, *carry[:4])
             if self.k.has_jp:
                 self.k._save_jp_grad(0, n, carry[4])
+            if self.k.contact_memory:
+                self.k._save_u_grad(0, n, carry[5])
         if self._segment_in_slots != len(starts) - 1:  # the slots hold an earlier segment's recompute:
             self._load(0, self._final)  # continue (step, particles_state, stress) from the rollout's end
             self._slot, self._segment_in_slots = 0, None
@@ -807,8 +856,9 @@ class Simulator:
             # the engine used f / |f|: project out the radial part and divide by |f|
             fiber=(fiber - (fiber * unit).sum(1, keepdims=True) * unit) / self._fiber_length[:, None],
             x0=carry[0].astype(np.float64), v0=carry[1].astype(np.float64), C0=carry[2].astype(np.float64),
-            F0=carry[3].astype(np.float64), Jp0=carry[4].astype(np.float64))
+            F0=carry[3].astype(np.float64), Jp0=carry[4].astype(np.float64),
+            u0=carry[5].astype(np.float64) if self.k.contact_memory else None)
         for name, value in vars(grads).items():
-            if not np.isfinite(value).all():
+            if value is not None and not np.isfinite(value).all():
                 raise SimulationError(f"the backward pass produced non-finite gradients for {name}")
         return grads

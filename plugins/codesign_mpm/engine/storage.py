@@ -54,7 +54,8 @@ class Layout:
     scatter_copies: int = 1  # private grids p2g scatters into without atomics (runtime.scatter_copies)
     members: int = 1  # scenes simulated side by side (codesign_mpm.batch); 1: a plain simulator
     has_flip: bool = False  # FLIP's share in the elastic bodies' velocity update (scene.flip > 0)
-    surface_contact: bool = False  # the terrain's contact at its exact surface (terrain.contact: surface)
+    surface_contact: bool = False  # the terrain's contact at its exact surface (terrain.contact: surface, spring)
+    contact_memory: bool = False  # the surface contact as springs whose friction remembers (terrain.contact: spring)
 
 
 @ti.data_oriented
@@ -91,6 +92,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         self.private_scatter = layout.scatter_copies > 1
         self.has_flip = layout.has_flip
         self.surface_contact = layout.surface_contact
+        self.contact_memory = layout.contact_memory
         # a private grid node: momentum, mass (with FLIP the momentum before forces; with the surface
         # contact the mass in contact, last)
         self.part_width = 4 + 3 * layout.has_flip + layout.surface_contact
@@ -172,6 +174,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
             self.member_substeps = scalar((layout.members,), dtype=ti.i32)  # per control step
             self.member_speed = scalar((layout.members,))
             self.member_wave = scalar((layout.members,))
+            self.member_flip = scalar((layout.members,))  # FLIP's share at each member's own step (pic_time)
         if self.has_flip:  # last, as the batch's fields
             self.grid_q = vec(3, self.grid_total, True)  # momentum before forces: sum w m (v + C (x_i - x_p))
             self.grid_v_old = vec(3, self.grid_total, True)  # its velocity, grid_q / m (grid_op)
@@ -180,6 +183,10 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
             self.in_contact = scalar((n,), dtype=ti.i32)  # whether a particle takes part (contact._takes_part)
             self.impulse = vec(3, (n,), True)  # each particle's contact impulse (contact._contact_impulse)
             self.grid_contact = scalar(self.grid_total, True)  # a node's mass in contact
+        if self.contact_memory:  # last, as the surface contact's (contact._spring_impulse)
+            self.u = vec(3, (slots, n), True)  # each particle's tangential spring: its displacement from its anchor
+            self.contact_stiffness = scalar(())
+            self.contact_damping = scalar(())
         self._tree = builder.finalize()
 
     def free(self) -> None:
@@ -257,6 +264,30 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
             self.Jp.grad[s, p] += jp[p]
 
     @ti.kernel
+    def _load_u(self, s: ti.i32, n: ti.i32, u: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                self.u[s, p][i] = u[p, i]
+
+    @ti.kernel
+    def _save_u(self, s: ti.i32, n: ti.i32, u: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                u[p, i] = self.u[s, p][i]
+
+    @ti.kernel
+    def _save_u_grad(self, s: ti.i32, n: ti.i32, u: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                u[p, i] = self.u.grad[s, p][i]
+
+    @ti.kernel
+    def _add_u_grad(self, s: ti.i32, n: ti.i32, u: ti.types.ndarray()):
+        for p in range(n):
+            for i in ti.static(range(3)):
+                self.u.grad[s, p][i] += u[p, i]
+
+    @ti.kernel
     def _copy_slot(self, src: ti.i32, dst: ti.i32, n: ti.i32):
         for p in range(n):
             self.x[dst, p] = self.x[src, p]
@@ -265,6 +296,8 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
             self.F[dst, p] = self.F[src, p]
             if ti.static(self.has_jp):
                 self.Jp[dst, p] = self.Jp[src, p]
+            if ti.static(self.contact_memory):
+                self.u[dst, p] = self.u[src, p]
 
     @ti.kernel
     def _probe(self, s: ti.i32, t: ti.i32, n: ti.i32):

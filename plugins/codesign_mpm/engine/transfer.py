@@ -297,6 +297,8 @@ class _Transfers:
         for model in ti.static(flip_models()):
             if self.material[p] == model and self.F[s, p].determinant() > J_FLIP:
                 share = self.flip_ratio[None]
+                if ti.static(self.batched):  # each member at its own step (simulator.flip_share)
+                    share = self.member_flip[self.member[p]]
         return share
 
     @ti.func
@@ -398,5 +400,7 @@ class _Transfers:
                     self.x[so, p] = self.x[s, p]
                     self.v[so, p] = self.v[s, p]
                     self.C[so, p] = self.C[s, p]
+                    if ti.static(self.contact_memory):  # sitting out, it keeps its springs
+                        self.u[so, p] = self.u[s, p]
             else:
                 self._g2p_particle(p, s, so)

@@ -1,0 +1,113 @@
+"""Does a score depend on the number of substeps (issue 47)? Runs' best episodes replayed, the
+travelling gait of docs/accuracy.md (1 s on robot_ground, stress-free or settled start) and an
+elastic ball's rebound, at the CFL number of the recipe (0.4) and at a quarter and a sixteenth of
+it, for each contact and PIC setting.
+Prints one JSON line per (source, setting) with the three returns (appended to --out);
+docs/contact.md section 24 reads them.
+
+    codesign run recipes/quickstart.yaml --run-dir runs/qs     # and cma_es, cppn_neat: the runs to replay
+    python benchmarks/contact_steps.py runs/qs runs/cma --gait --out records.jsonl
+    python benchmarks/contact_steps.py runs/qs --gait --settings "spring, pic_time" --terrain contact_stiffness=2e5
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+import numpy as np
+
+from codesign.runner import replay_best
+from codesign_mpm import BodySpec, Scene, ShapeSpec, TerrainSpec, build_particles
+from codesign_mpm.accuracy import Setting, gait, robot_env
+from codesign_mpm.engine import Simulator
+
+FACTORS = (1.0, 0.25, 0.0625)
+SETTINGS = {  # label: (terrain.contact, environment.pic_time)
+    "nodes": ("nodes", None),
+    "nodes, pic_time": ("nodes", 0.265),
+    "spring": ("spring", None),
+    "spring, pic_time": ("spring", 0.265),
+}
+
+
+def replayed(run_dir: Path, contact: str, pic_time: float | None, terrain: dict, flip: float) -> list[float]:
+    """The run's best episode's return at each CFL factor."""
+    cfl = OmegaConf.load(run_dir / "config.yaml").environment.get("cfl") or 0.4
+    return [replay_best(run_dir, 1, {"environment": {"cfl": cfl * f, "pic_time": pic_time, "flip": flip,
+                                                     "terrain": {"contact": contact, **terrain}}})[0].episode_return
+            for f in FACTORS]
+
+
+def rebound(cfl: float, contact: str, pic_time: float | None, terrain: dict, flip: float) -> float:
+    """How high an elastic ball (radius 0.07, dropped from 0.28 above its rest) rises after its
+    first bounce, above its height at rest."""
+    scene = Scene(size=[1.0, 1.0, 0.5], dx=1 / 32, cfl=cfl, flip=flip, pic_time=pic_time,
+                  terrain=TerrainSpec(height=0.2, friction=0.5, contact=contact, **terrain),
+                  bodies=[BodySpec(shape=ShapeSpec(kind="sphere", radius=0.07), center=[0.5, 0.55, 0.25])])
+    sim = Simulator(scene, build_particles(scene))
+    try:
+        mass = sim.particles.volume * sim.particles.density
+        heights = []
+        for _ in range(150):
+            sim.step()
+            heights.append(float(mass @ sim.particles_state()[0][:, 1] / mass.sum()))
+    finally:
+        sim.close()
+    lowest = int(np.argmin(heights[:100]))
+    return max(heights[lowest:]) - 0.27
+
+
+def gait_distance(cfl: float, contact: str, pic_time: float | None, terrain: dict, flip: float,
+                  settled: bool) -> float:
+    env = robot_env("ground", Setting(dx=1 / 32, cfl=cfl), 125, contact=contact, pic_time=pic_time, settled=settled,
+                    terrain=terrain, flip=flip)
+    try:
+        start = env.reset()[:3]
+        for f in range(125):
+            com = env.step(gait(f, env.action_dim)).info["com"]
+        return float(com[0] - start[0])
+    finally:
+        env.close()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="*", type=Path, help="run directories whose best episodes to replay")
+    parser.add_argument("--gait", action="store_true", help="also the travelling gait, stress-free and settled")
+    parser.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
+    parser.add_argument("--terrain", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="more terrain keys for every setting, e.g. contact_stiffness=2e5 contact_damping=0.3")
+    parser.add_argument("--flip", type=float, default=0.99, help="FLIP's share (per substep without pic_time)")
+    parser.add_argument("--ball", action="store_true", help="also a dropped elastic ball's rebound")
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args()
+    terrain = {key: float(value) for key, value in (item.split("=", 1) for item in args.terrain)}
+    flip = args.flip
+    sources = [(str(run), lambda c, p, run=run: replayed(run, c, p, terrain, flip)) for run in args.runs]
+    if args.gait:
+        sources += [(f"gait ({'settled' if settled else 'stress-free'})",
+                     lambda c, p, s=settled: [gait_distance(0.4 * f, c, p, terrain, flip, s) for f in FACTORS])
+                    for settled in (False, True)]
+    if args.ball:
+        sources.append(("ball rebound", lambda c, p: [rebound(0.4 * f, c, p, terrain, flip) for f in FACTORS]))
+    for source, measure in sources:
+        for label in args.settings:
+            started = time.perf_counter()
+            values = measure(*SETTINGS[label])
+            record = {"source": source, "setting": label, "terrain": terrain, "flip": flip, "cfl_factors": list(FACTORS),
+                      "values": values,
+                      "quarter": (values[1] - values[0]) / abs(values[0]),
+                      "sixteenth_from_quarter": (values[2] - values[1]) / abs(values[1]),
+                      "seconds": round(time.perf_counter() - started, 1)}
+            print(json.dumps(record), flush=True)
+            if args.out is not None:
+                with args.out.open("a", encoding="utf-8") as f:
+                    f.write(json.dumps(record) + "\n")
+
+
+if __name__ == "__main__":
+    main()
