@@ -22,7 +22,7 @@ import numpy as np
 
 from codesign.runner import replay_best
 from codesign_mpm import BodySpec, Scene, ShapeSpec, TerrainSpec, build_particles
-from codesign_mpm.accuracy import Setting, gait, robot_env
+from codesign_mpm.accuracy import Setting, gait_distance
 from codesign_mpm.engine import Simulator
 
 FACTORS = (1.0, 0.25, 0.0625)
@@ -61,17 +61,6 @@ def rebound(cfl: float, contact: str, pic_time: float | None, terrain: dict, fli
     return max(heights[lowest:]) - 0.27
 
 
-def gait_distance(cfl: float, contact: str, pic_time: float | None, terrain: dict, flip: float,
-                  settled: bool) -> float:
-    env = robot_env("ground", Setting(dx=1 / 32, cfl=cfl), 125, contact=contact, pic_time=pic_time, settled=settled,
-                    terrain=terrain, flip=flip)
-    try:
-        start = env.reset()[:3]
-        for f in range(125):
-            com = env.step(gait(f, env.action_dim)).info["com"]
-        return float(com[0] - start[0])
-    finally:
-        env.close()
 
 
 def main() -> None:
@@ -90,7 +79,8 @@ def main() -> None:
     sources = [(str(run), lambda c, p, run=run: replayed(run, c, p, terrain, flip)) for run in args.runs]
     if args.gait:
         sources += [(f"gait ({'settled' if settled else 'stress-free'})",
-                     lambda c, p, s=settled: [gait_distance(0.4 * f, c, p, terrain, flip, s) for f in FACTORS])
+                     lambda c, p, s=settled: [gait_distance(Setting(dx=1 / 32, cfl=0.4 * f), contact=c, pic_time=p,
+                                                            terrain=terrain, flip=flip, settled=s) for f in FACTORS])
                     for settled in (False, True)]
     if args.ball:
         sources.append(("ball rebound", lambda c, p: [rebound(0.4 * f, c, p, terrain, flip) for f in FACTORS]))

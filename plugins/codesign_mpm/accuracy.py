@@ -288,6 +288,19 @@ def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[flo
     return LocomotionEnv(config, preset)
 
 
+def gait_distance(s: Setting, frames: int = 125, **options) -> float:
+    """Distance along x the travelling gait carries the robot on robot_ground in `frames` control
+    steps (125: 1 s); `options`: robot_env's (flip, pic_time, terrain_height, contact, settled, ...)."""
+    env = robot_env("ground", s, frames, **options)
+    try:
+        start = env.reset()[:3]  # the observation starts with the robot's centre of mass
+        for f in range(frames):
+            com = env.step(gait(f, env.action_dim)).info["com"]
+        return float(com[0] - start[0])
+    finally:
+        env.close()
+
+
 def measure_robot(environment: str, arch: str = "cpu", contact: str = "nodes",
                   settled: bool = True) -> Callable[[Setting, dict], dict]:
     """The distance the gait carries the robot from its start (`settled`: at rest under its weight, as

@@ -61,16 +61,10 @@ def test_block_on_incline_slides_iff_tan_theta_exceeds_mu(theta_deg, contact):
 def gait_distance(cfl: float = 0.4, dx: float = DX, **options) -> float:
     """Distance along x after 1 s of docs/accuracy.md's travelling gait on robot_ground (`options`:
     robot_env's, e.g. flip, terrain_height, contact)."""
-    from codesign_mpm.accuracy import Setting, gait, robot_env
+    from codesign_mpm.accuracy import Setting
+    from codesign_mpm.accuracy import gait_distance as distance
 
-    env = robot_env("ground", Setting(dx=dx, cfl=cfl), 125, **options)
-    try:
-        start = env.reset()[:3]
-        for f in range(125):
-            com = env.step(gait(f, env.action_dim)).info["com"]
-        return float(com[0] - start[0])
-    finally:
-        env.close()
+    return distance(Setting(dx=dx, cfl=cfl), **options)
 
 
 def test_the_surface_contact_does_not_see_where_the_surface_falls_within_a_cell():
