@@ -9,9 +9,11 @@ One substep (`Simulator._substep`; the kernels live in the modules named):
     p2g      -> scatter m v and the MLS force/affine term (and the mass at the terrain's surface) to 27
                 nodes [transfer]
     grid_op  -> v = p / m + dt g; terrain (height-map SDF, Coulomb friction); domain walls [grid]
-    contact  -> (terrain.contact: surface) the impulses of the particles at the terrain's exact
-                surface, from the updated grid and added to it [contact]
-    g2p      -> gather v and C; x <- x + dt v (with `scene.flip`, a FLIP share) [transfer]
+    contact  -> (terrain.contact: surface, spring) the impulses of the particles at the terrain's
+                exact surface, from the updated grid and added to it; spring: each particle's
+                tangential spring into the next slot [contact]
+    g2p      -> gather v and C; x <- x + dt v (with `scene.flip` or `scene.pic_time`, a FLIP
+                share) [transfer]
 
 and its reverse (`Simulator._substep_grad`): the grid kept from the segment's recompute, then
 g2p's, the contact's, grid_op's, p2g's and the stress's adjoints. `rollout` stores checkpoints,
