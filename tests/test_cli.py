@@ -28,7 +28,7 @@ def test_user_errors_print_one_red_line_without_traceback(tmp_path, cli, toy_rec
     assert code == 1 and out == ""
     assert err.strip() == (
         "error: invalid recipe 'toy': controller.name: unknown controller 'sinee'; did you mean 'sine'? "
-        "known: mlp, sine, trajectory (from override 'controller.name=sinee')"
+        "known: hyperneat, mlp, sine, trajectory (from override 'controller.name=sinee')"
     )
     assert "Traceback" not in err
 

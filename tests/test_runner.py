@@ -34,7 +34,8 @@ def test_run_writes_config_metrics_summary_and_checkpoint(tmp_path, toy_recipe):
 
     config = yaml.safe_load((run_dir / "config.yaml").read_text())
     assert config["run_dir"] == str(tmp_path / "run")
-    assert config["controller"] == {"name": "sine", "frequencies": [6.0, 12.0], "phases": 4, "bound": 0.3, "init_std": 0.1}
+    assert config["controller"] == {"name": "sine", "frequencies": [6.0, 12.0], "phases": 4, "bound": 0.3, "init_std": 0.1,
+                                    "bias": "per_basis"}
     assert resolve_recipe(config).data == config  # the saved config is itself a valid, complete recipe
 
     rows = read_metrics(run_dir)
