@@ -148,3 +148,42 @@ def test_a_closed_loop_episode_carries_the_springs_from_step_to_step():
     finally:
         torch.set_default_dtype(torch.float32)
         env.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mu, stretch", [(0.5, 1e-5), (0.02, 2e-4)], ids=["sticking", "slipping"])
+def test_the_springs_initial_values_get_their_gradient(mu, stretch):
+    """A block pressed 0.1 mm into the terrain, its bottom layer's springs stretched at the start: the
+    gradient of where its particles end up with respect to a contact particle's initial spring
+    matches central differences, stuck (mu 0.5: the spring's pull, about 5e-3 N, under Coulomb's
+    0.02 N) and slipping (mu 0.02: a pull of 0.1 N against 7e-4 N, the spring at the cap)."""
+    h0 = 0.2
+    scene = Scene(size=[1.0, 1.0, 0.5], dx=DX, dtype="float64", flip=0.99, pic_time=PIC_TIME,
+                  terrain=TerrainSpec(height=h0, friction=mu, contact="spring"),
+                  bodies=[BodySpec(shape=ShapeSpec(size=[0.08, 0.04, 0.04]), center=[0.5, h0 + 0.03, 0.25],
+                                   material=MaterialSpec(youngs_modulus=1e5))])
+    particles = build_particles(scene)
+    bottom = np.flatnonzero(particles.x[:, 1] < particles.x[:, 1].min() + 1e-6)
+    depth = particles.x[bottom[0], 1] - h0 - particles.volume[bottom[0]] ** (1 / 3) / 2 + 1e-4
+    particles = replace(particles, x=particles.x - [0.0, depth, 0.0])  # the bottom layer 0.1 mm deep
+    springs = np.zeros((particles.n, 3))
+    springs[bottom, 0] = stretch  # along +x: pulls the layer back towards -x
+    weights = np.random.default_rng(0).normal(size=(particles.n, 3)) / particles.n
+    sim = Simulator(scene, particles, requires_grad=True, max_frames=3, checkpoint_every=4)
+    try:
+        def loss(u) -> float:
+            sim.set_initial_state(u=u)
+            return float((weights * sim.rollout(np.zeros((3, 0)), checkpoint_every=4).x).sum())
+
+        loss(springs)
+        gradient = sim.backward(x=weights).u0
+        p = bottom[len(bottom) // 2]
+        assert np.abs(gradient[bottom]).max() > 0
+        for axis in (0, 2):
+            plus, minus = springs.copy(), springs.copy()
+            plus[p, axis] += 1e-7
+            minus[p, axis] -= 1e-7
+            numeric = (loss(plus) - loss(minus)) / 2e-7
+            assert gradient[p, axis] == pytest.approx(numeric, rel=1e-4, abs=1e-4 * np.abs(gradient).max())
+    finally:
+        sim.close()
