@@ -1,13 +1,14 @@
 """Does a score depend on the number of substeps (issue 47)? Runs' best episodes replayed, the
-travelling gait of docs/accuracy.md (1 s on robot_ground, stress-free or settled start) and an
-elastic ball's rebound, at the CFL number of the recipe (0.4) and at a quarter and a sixteenth of
-it, for each contact and PIC setting.
+travelling gait of docs/accuracy.md (1 s on robot_ground, stress-free or settled start), random
+sine gaits of a recipe's body and an elastic ball's rebound, at the CFL number of the recipe (0.4)
+and at a quarter and a sixteenth of it, for each contact and PIC setting.
 Prints one JSON line per (source, setting) with the three returns (appended to --out);
 docs/contact.md section 24 reads them.
 
     codesign run recipes/quickstart.yaml --run-dir runs/qs     # and cma_es, cppn_neat: the runs to replay
     python benchmarks/contact_steps.py runs/qs runs/cma --gait --out records.jsonl
     python benchmarks/contact_steps.py runs/qs --gait --settings "spring, pic_time" --terrain contact_stiffness=2e5
+    python benchmarks/contact_steps.py --random-gaits 8 --recipe recipes/quickstart.yaml --dx 0.03125 0.0208333
 """
 from __future__ import annotations
 
@@ -42,6 +43,29 @@ def replayed(run_dir: Path, contact: str, pic_time: float | None, terrain: dict,
             for f in FACTORS]
 
 
+def random_gait(recipe: Path, seed: int, dx: float, cfl: float, contact: str, pic_time: float | None,
+                terrain: dict, flip: float) -> float:
+    """The return of the recipe's environment and starting design under a sine gait drawn from
+    `seed` (weights N(0, 1): up to the action bound), at `dx` and `cfl`."""
+    from codesign.artifacts import play
+    from codesign.recipe import load_recipe
+    from codesign.runner import build_parts
+
+    overrides = [f"seed={seed}", "controller.name=sine", "controller.init_std=1.0", f"environment.dx={dx}",
+                 f"environment.cfl={cfl}", f"environment.flip={flip}",
+                 f"environment.pic_time={'null' if pic_time is None else pic_time}",
+                 f"environment.terrain.contact={contact}", *(f"environment.terrain.{k}={v}" for k, v in terrain.items())]
+    parts = build_parts(load_recipe(recipe, overrides))
+    try:
+        rng = np.random.default_rng(seed)
+        env = parts.environment
+        parts.representation.setup(env.design_space, rng)
+        parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
+        return play(env, parts.representation(), parts.controller, seed=0).episode_return
+    finally:
+        env.close()
+
+
 def rebound(cfl: float, contact: str, pic_time: float | None, terrain: dict, flip: float) -> float:
     """How high an elastic ball (radius 0.07, dropped from 0.28 above its rest) rises after its
     first bounce, above its height at rest."""
@@ -72,6 +96,10 @@ def main() -> None:
                         help="more terrain keys for every setting, e.g. contact_stiffness=2e5 contact_damping=0.3")
     parser.add_argument("--flip", type=float, default=0.99, help="FLIP's share (per substep without pic_time)")
     parser.add_argument("--ball", action="store_true", help="also a dropped elastic ball's rebound")
+    parser.add_argument("--random-gaits", type=int, default=0, metavar="N", help="also N random sine gaits")
+    parser.add_argument("--recipe", type=Path, default=Path("recipes/quickstart.yaml"),
+                        help="whose environment and starting design the random gaits play")
+    parser.add_argument("--dx", type=float, nargs="+", default=[1 / 32], help="grids of the random gaits")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     terrain = {key: float(value) for key, value in (item.split("=", 1) for item in args.terrain)}
@@ -82,6 +110,10 @@ def main() -> None:
                      lambda c, p, s=settled: [gait_distance(Setting(dx=1 / 32, cfl=0.4 * f), contact=c, pic_time=p,
                                                             terrain=terrain, flip=flip, settled=s) for f in FACTORS])
                     for settled in (False, True)]
+    sources += [(f"random gait {seed} at dx {dx:.4g}",
+                 lambda c, p, seed=seed, dx=dx: [random_gait(args.recipe, seed, dx, 0.4 * f, c, p, terrain, flip)
+                                                 for f in FACTORS])
+                for dx in args.dx for seed in range(args.random_gaits)]
     if args.ball:
         sources.append(("ball rebound", lambda c, p: [rebound(0.4 * f, c, p, terrain, flip) for f in FACTORS]))
     for source, measure in sources:
