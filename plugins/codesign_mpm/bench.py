@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import re
 import resource
 import subprocess
 import sys
@@ -33,13 +34,14 @@ class Case:
     scale: str
     dtype: str
     grid_region: str = "bbox"
+    arch: str = "cpu"
 
 
 def robot_scene(case: Case):
     from codesign_mpm import BodySpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec
 
     s = SCALES[case.scale]
-    return Scene(size=[1.0, 1.0, 1.0], dx=s["dx"], dtype=case.dtype, grid_region=case.grid_region,
+    return Scene(size=[1.0, 1.0, 1.0], dx=s["dx"], dtype=case.dtype, grid_region=case.grid_region, arch=case.arch,
                  terrain=TerrainSpec(kind="flat", height=s["terrain"], friction=0.5),
                  bodies=[BodySpec(name="robot", robot=True, shape=ShapeSpec(size=s["robot"]),
                                   center=[0.5, 0.0, 0.5], rest_on_terrain=True, muscles=MuscleSpec(groups=[2, 2, 1]))])
@@ -99,6 +101,75 @@ def measure_backward(case: Case, frames: int = 200, repeats: int = 1) -> dict:
                 forward_s=float(np.median(fwd)), forward_backward_s=float(np.median(total)),
                 backward_over_forward=float(np.median(total) / np.median(fwd)), repeats=repeats,
                 peak_rss_mb=round(_peak_rss_mb(), 1))
+
+
+KERNEL_TASK = re.compile(r"(?P<kernel>.+?)_c\d+_\d+_kernel_(?P<task>\d+)_")
+FIELD_ACCESS = re.compile(r"snode_(reader|writer)_\d+")
+
+
+def _kernel_profile(substeps: int, wall_s: float) -> dict:
+    """Taichi's kernel profiler records since its last clear, per substep: launches (a kernel's
+    first offloaded task), the fields read or written one element at a time from Python (each a
+    launch and a host round trip), kernel time, and the rest of the wall time (Python, launching,
+    synchronising); the kernels by their share of the kernel time."""
+    from taichi.profiler import kernel_profiler
+
+    profiler = kernel_profiler.get_default_kernel_profiler()
+    profiler._update_records()  # Taichi's own accessor for the backend's records
+    kernels: dict[str, list] = {}
+    launches = accesses = 0
+    kernel_ms = 0.0
+    for record in profiler._traced_records:
+        kernel_ms += record.kernel_time
+        if FIELD_ACCESS.match(record.name):
+            accesses += 1
+            continue
+        match = KERNEL_TASK.match(record.name)
+        name = match["kernel"] if match else record.name
+        entry = kernels.setdefault(name, [0, 0.0])
+        entry[1] += record.kernel_time
+        if match is None or match["task"] == "0":
+            entry[0] += 1
+            launches += 1
+    wall_ms = 1e3 * wall_s
+    top = sorted(kernels.items(), key=lambda item: -item[1][1])
+    return dict(substeps=substeps, launches_per_substep=launches / substeps,
+                field_accesses_per_substep=accesses / substeps, wall_ms_per_substep=wall_ms / substeps,
+                kernel_ms_per_substep=kernel_ms / substeps, other_share=1 - kernel_ms / wall_ms,
+                kernels={name: dict(share=round(ms / kernel_ms, 4), launches_per_substep=round(n / substeps, 2))
+                         for name, (n, ms) in top})
+
+
+def measure_profile(case: Case, frames: int = 5, backward_frames: int = 20) -> dict:
+    """Where a substep's time goes (`codesign bench engine --profile`), forward and forward +
+    backward, under Taichi's kernel profiler (`CODESIGN_KERNEL_PROFILER=1`, set by the caller: it
+    must be on when Taichi starts). The profiler synchronises around every kernel, so its wall
+    times are upper bounds; `forward` measures the unprofiled throughput."""
+    import taichi as ti
+
+    from codesign_mpm import build_particles
+    from codesign_mpm.engine import Simulator
+
+    scene = robot_scene(case)
+    particles = build_particles(scene)
+    sim = Simulator(scene, particles)
+    sim.step(np.zeros(sim.n_actuators))  # compiles (or loads from the offline cache)
+    ti.profiler.clear_kernel_profiler_info()
+    t0 = time.perf_counter()
+    sim.step(np.full(sim.n_actuators, 0.1), frames=frames)
+    forward = _kernel_profile(sum(sim.frame_substeps[-frames:]), time.perf_counter() - t0)
+    sim.close()
+    sim = Simulator(scene, particles, requires_grad=True, max_frames=backward_frames)
+    actions = 0.1 * np.sin(np.arange(backward_frames)[:, None] * 0.3 + np.arange(sim.n_actuators))
+    seed = np.tile([1.0, 0.0, 0.0], (backward_frames + 1, 1)) / backward_frames
+    sim.rollout(actions)
+    sim.backward(com_v=seed)  # compiles
+    ti.profiler.clear_kernel_profiler_info()
+    t0 = time.perf_counter()
+    sim.rollout(actions)
+    sim.backward(com_v=seed)
+    both = _kernel_profile(sum(sim.frame_substeps), time.perf_counter() - t0)
+    return dict(measure="profile", arch=case.arch, particles=sim.n, forward=forward, forward_backward=both)
 
 
 def measure_batch(case: Case, members: int = 8, frames: int = 5, repeats: int = 5) -> dict:
@@ -288,24 +359,40 @@ def _machine() -> dict:
     return dict(machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version())
 
 
-def run_module(module: str, *args: str) -> tuple[dict | None, str | None]:
-    """Run `python -m MODULE ARGS` in a fresh process (its own Taichi program and peak memory) and
-    return (the JSON record it printed last, None), or (None, the last line of its error output)."""
-    done = subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True)
+def run_module(module: str, *args: str, environment: dict | None = None) -> tuple[dict | None, str | None]:
+    """Run `python -m MODULE ARGS` in a fresh process (its own Taichi program and peak memory; with
+    `environment`'s variables added) and return (the JSON record it printed last, None), or (None,
+    the last line of its error output)."""
+    done = subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True,
+                          env={**os.environ, **(environment or {})})
     if done.returncode:
         lines = done.stderr.strip().splitlines()
         return None, lines[-1] if lines else f"exit status {done.returncode}"
     return json.loads(done.stdout.strip().splitlines()[-1]), None
 
 
-def _in_subprocess(*args: str) -> dict:
+def _in_subprocess(*args: str, environment: dict | None = None) -> dict:
     """Run `python -m codesign_mpm.bench ARGS` and return its JSON record (or the error line)."""
-    record, error = run_module("codesign_mpm.bench", *args)
+    record, error = run_module("codesign_mpm.bench", *args, environment=environment)
     return dict(error=error) if error else record
 
 
-def _run_isolated(kind: str, case: Case, **kwargs) -> dict:
-    return {"measure": kind, **_in_subprocess(kind, case.scale, case.dtype, case.grid_region, json.dumps(kwargs))}
+def _run_isolated(kind: str, case: Case, environment: dict | None = None, **kwargs) -> dict:
+    return {"measure": kind, **_in_subprocess(kind, case.scale, case.dtype, case.grid_region, case.arch,
+                                              json.dumps(kwargs), environment=environment)}
+
+
+def run_profile_bench(scales: list[str], arch: str, emit, progress: bool = True) -> None:
+    """Emit, per scale, where a substep's time goes (`measure_profile`), on `arch`."""
+    from codesign.progress import progress_bar
+
+    machine = _machine()
+    with progress_bar(total=len(scales), desc="bench engine --profile", unit="scale", show=progress) as bar:
+        for scale in scales:
+            emit(dict(scale=scale, dtype="float32", **_run_isolated(
+                "profile", Case(scale, "float32", arch=arch), environment={"CODESIGN_KERNEL_PROFILER": "1"}),
+                **machine))
+            bar.update(1)
 
 
 def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True) -> None:
@@ -420,8 +507,8 @@ if __name__ == "__main__":  # one isolated measurement, used by _run_isolated / 
     elif sys.argv[1] == "compile":
         print(json.dumps(measure_compile(sys.argv[2], sys.argv[3])))
     else:
-        kind, scale, dtype, region, kwargs = sys.argv[1:6]
+        kind, scale, dtype, region, arch, kwargs = sys.argv[1:7]
         measure = {"forward": measure_forward, "backward": measure_backward, "batch": measure_batch,
                    "scatter": measure_scatter, "adaptive": measure_adaptive, "flip": measure_flip,
-                   "contact": measure_contact}[kind]
-        print(json.dumps(measure(Case(scale, dtype, region), **json.loads(kwargs))))
+                   "contact": measure_contact, "profile": measure_profile}[kind]
+        print(json.dumps(measure(Case(scale, dtype, region, arch), **json.loads(kwargs))))

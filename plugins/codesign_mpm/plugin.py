@@ -216,16 +216,24 @@ def codesign_cli(app: typer.Typer) -> None:
         scale: list[str] = typer.Option(["small"], "--scale", help="tiny (about 1k particles, dx 1/32), small "
                                         "(about 7.7k, dx 1/64) and/or paper (about 61k, dx 1/128); repeatable."),
         frames: int = typer.Option(200, "--frames", min=1, help="Frames of the differentiable episode."),
+        profile: bool = typer.Option(False, "--profile", help="Instead: where a substep's time goes (kernel "
+                                     "launches, Python-side field accesses, each kernel's share, the rest), "
+                                     "forward and forward + backward, under Taichi's kernel profiler."),
+        arch: str = typer.Option("cpu", "--arch", help="With --profile: cpu or cuda."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
     ) -> None:
         """Forward particle-substeps/s (float32, float64, dense grid), (forward + backward) / forward
         with checkpointing, peak memory of a differentiable episode, first-call (compile) time, and
         8 episodes in one batched simulator against the same 8 one after the other, and p2g's
-        private-grid scatter against atomic adds."""
-        from codesign_mpm.bench import SCALES, run_engine_bench
+        private-grid scatter against atomic adds; or (--profile) where a substep's time goes."""
+        from codesign_mpm.bench import SCALES, run_engine_bench, run_profile_bench
 
         for s in scale:
             if s not in SCALES:
                 raise typer.BadParameter(f"--scale {s!r}: choose from {', '.join(SCALES)}")
-        run_engine_bench(scale, frames, _echo_json,
-                         progress=not no_progress)
+        if arch not in ("cpu", "cuda"):
+            raise typer.BadParameter(f"--arch {arch!r}: choose from cpu, cuda")
+        if profile:
+            run_profile_bench(scale, arch, _echo_json, progress=not no_progress)
+        else:
+            run_engine_bench(scale, frames, _echo_json, progress=not no_progress)

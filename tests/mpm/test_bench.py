@@ -1,6 +1,8 @@
 """The benchmark code path stays runnable (its numbers are for `codesign bench`, not for tests)."""
 import json
 
+import pytest
+
 from codesign_mpm.bench import Case, measure_batch, measure_forward
 
 
@@ -23,3 +25,21 @@ def test_batch_measurement_compares_one_batch_with_the_same_episodes_one_at_a_ti
 def test_bench_compile_names_the_allowed_covers(cli):
     code, _, err = cli("bench", "compile", "--cover", "lava")
     assert code != 0 and "--cover 'lava': choose from none, sand, snow, clay, mud, water" in " ".join(err.replace("│", " ").split())
+
+
+def test_the_profile_counts_a_substeps_kernel_launches_and_splits_its_time():
+    """`codesign bench engine --profile`: a forward substep of the tiny scene launches p2g, the
+    private grids' sum, grid_op, g2p and the box's bounds once each (the state check once a frame),
+    and the kernels' shares add up to one."""
+    from codesign_mpm.bench import run_profile_bench
+
+    records = []
+    run_profile_bench(["tiny"], "cpu", records.append, progress=False)
+    (record,) = records
+    assert "error" not in record, record.get("error")
+    forward = record["forward"]
+    assert {"_p2g", "_sum_copies", "_grid_op", "_g2p", "_bounds"} <= set(forward["kernels"])
+    assert all(forward["kernels"][k]["launches_per_substep"] == 1.0 for k in ("_p2g", "_grid_op", "_g2p"))
+    assert 5 <= forward["launches_per_substep"] < 6 and 0 <= forward["other_share"] < 1
+    assert sum(k["share"] for k in forward["kernels"].values()) == pytest.approx(1.0, abs=0.01)
+    assert record["forward_backward"]["launches_per_substep"] > 3 * forward["launches_per_substep"]
