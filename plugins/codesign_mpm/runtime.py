@@ -61,7 +61,8 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
         offline_cache=True,
         offline_cache_max_size_of_files=CACHE_LIMIT_BYTES,
         **({"offline_cache_file_path": cache_dir} if cache_dir else {}),
-        kernel_profiler=os.environ.get("CODESIGN_KERNEL_PROFILER") == "1",  # `codesign bench engine --profile`
+        # `codesign bench engine --profile`; named only when on (named at all, it changes the kernel cache's keys)
+        **({"kernel_profiler": True} if os.environ.get("CODESIGN_KERNEL_PROFILER") == "1" else {}),
         log_level=ti.WARN,
     )
     _current = wanted
