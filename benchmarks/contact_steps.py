@@ -17,11 +17,12 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
 from omegaconf import OmegaConf
 
-import numpy as np
-
-from codesign.runner import replay_best
+from codesign.artifacts import play
+from codesign.recipe import load_recipe
+from codesign.runner import build_parts, replay_best
 from codesign_mpm import BodySpec, Scene, ShapeSpec, TerrainSpec, build_particles
 from codesign_mpm.accuracy import Setting, gait_distance
 from codesign_mpm.engine import Simulator
@@ -47,10 +48,6 @@ def random_gait(recipe: Path, seed: int, dx: float, cfl: float, contact: str, pi
                 terrain: dict, flip: float) -> float:
     """The return of the recipe's environment and starting design under a sine gait drawn from
     `seed` (weights N(0, 1): up to the action bound), at `dx` and `cfl`."""
-    from codesign.artifacts import play
-    from codesign.recipe import load_recipe
-    from codesign.runner import build_parts
-
     overrides = [f"seed={seed}", "controller.name=sine", "controller.init_std=1.0", f"environment.dx={dx}",
                  f"environment.cfl={cfl}", f"environment.flip={flip}",
                  f"environment.pic_time={'null' if pic_time is None else pic_time}",
