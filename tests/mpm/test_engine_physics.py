@@ -16,18 +16,34 @@ def com(sim) -> np.ndarray:
     return (m[:, None] * sim.particles_state()[0]).sum(0) / m.sum()
 
 
-def incline_scene(theta_deg: float, friction: float, contact: str = "nodes") -> Scene:
+def incline_scene(theta_deg: float, friction: float, contact: str = "nodes", **options) -> Scene:
     """A stiff block lying flush on a terrain incline that rises along +x: its face an eighth of a cell
-    above the surface for the node contact, its lowest row of particles (a quarter cell inside the
-    face at 8 per cell) on the surface for the surface contact, which holds the particles there."""
+    above the surface for the node and spring contacts, its lowest row of particles (a quarter cell
+    inside the face at 8 per cell) on the surface for the surface contact, which holds the particles
+    there. `options`: more Scene keys (cfl, flip, pic_time)."""
     theta, h0, xc, half = math.radians(theta_deg), 0.1, 0.6, 0.04
     normal = np.array([-math.sin(theta), math.cos(theta), 0.0])
-    lift = {"nodes": DX / 8, "surface": -DX / 4}[contact]
+    lift = {"nodes": DX / 8, "surface": -DX / 4, "spring": DX / 8}[contact]
     center = np.array([xc, h0 + math.tan(theta) * xc, 0.25]) + normal * (half + lift)
-    return Scene(size=[1.0, 1.0, 0.5], dx=DX,
+    return Scene(size=[1.0, 1.0, 0.5], dx=DX, **options,
                  terrain=TerrainSpec(kind="incline", height=h0, slope_deg=theta_deg, friction=friction, contact=contact),
                  bodies=[BodySpec(shape=ShapeSpec(size=[0.16, 0.08, 0.08]), center=center.tolist(),
                                   rotation=[0.0, 0.0, theta_deg], material=MaterialSpec(youngs_modulus=1e5))])
+
+
+def downhill_travel(scene: Scene, frames: int) -> np.ndarray:
+    """How far down the incline of `scene` its block's centre of mass has moved after each frame."""
+    theta = math.radians(scene.terrain.slope_deg)
+    downhill = np.array([-math.cos(theta), -math.sin(theta), 0.0])
+    sim = Simulator(scene, build_particles(scene))
+    try:
+        start, travel = com(sim), []
+        for _ in range(frames):
+            sim.step()
+            travel.append((com(sim) - start) @ downhill)
+        return np.array(travel)
+    finally:
+        sim.close()
 
 
 @pytest.mark.parametrize("contact", ["nodes", "surface"])
@@ -35,27 +51,17 @@ def incline_scene(theta_deg: float, friction: float, contact: str = "nodes") -> 
 def test_block_on_incline_slides_iff_tan_theta_exceeds_mu(theta_deg, contact):
     mu, g = 0.5, 3.8
     scene = incline_scene(theta_deg, mu, contact)
-    sim = Simulator(scene, build_particles(scene))
-    try:
-        theta = math.radians(theta_deg)
-        downhill = np.array([-math.cos(theta), -math.sin(theta), 0.0])
-        start = com(sim)
-        travel = []
-        for _ in range(60):
-            sim.step()
-            travel.append((com(sim) - start) @ downhill)
-        travel = np.array(travel)
-        if math.tan(theta) <= mu:
-            # after settling into contact (< a quarter cell, by frame 20) the block does not move at all
-            assert abs(travel[0]) < DX / 4
-            assert abs(travel[-1] - travel[19]) < 1e-3 * DX
-        else:
-            t = np.arange(1, 61) * scene.frame_dt
-            accel = 2 * np.polyfit(t[20:], travel[20:], 2)[0]
-            expected = g * (math.sin(theta) - mu * math.cos(theta))
-            assert accel == pytest.approx(expected, rel=0.08)
-    finally:
-        sim.close()
+    theta = math.radians(theta_deg)
+    travel = downhill_travel(scene, 60)
+    if math.tan(theta) <= mu:
+        # after settling into contact (< a quarter cell, by frame 20) the block does not move at all
+        assert abs(travel[0]) < DX / 4
+        assert abs(travel[-1] - travel[19]) < 1e-3 * DX
+    else:
+        t = np.arange(1, 61) * scene.frame_dt
+        accel = 2 * np.polyfit(t[20:], travel[20:], 2)[0]
+        expected = g * (math.sin(theta) - mu * math.cos(theta))
+        assert accel == pytest.approx(expected, rel=0.08)
 
 
 def gait_distance(cfl: float = 0.4, dx: float = DX, **options) -> float:

@@ -10,16 +10,17 @@ import pytest
 
 from codesign_mpm import BodySpec, MaterialSpec, Scene, ShapeSpec, TerrainSpec, build_particles
 from codesign_mpm.engine import Simulator
-from test_engine_physics import com, gait_distance
+from test_engine_physics import downhill_travel, gait_distance, incline_scene
 
 DX = 1 / 32
 PIC_TIME = 0.265  # flip 0.99 at the quick start's 2.7 ms step, as a time
 
 
-def block_scene(terrain: TerrainSpec, center: list[float], rotation: float = 0.0, cfl: float = 0.4) -> Scene:
-    return Scene(size=[1.0, 1.0, 0.5], dx=DX, cfl=cfl, flip=0.99, pic_time=PIC_TIME, terrain=terrain,
+def block_scene(terrain: TerrainSpec, center: list[float]) -> Scene:
+    """The incline tests' block, lying on flat terrain."""
+    return Scene(size=[1.0, 1.0, 0.5], dx=DX, flip=0.99, pic_time=PIC_TIME, terrain=terrain,
                  bodies=[BodySpec(shape=ShapeSpec(size=[0.16, 0.08, 0.08]), center=center,
-                                  rotation=[0.0, 0.0, rotation], material=MaterialSpec(youngs_modulus=1e5))])
+                                  material=MaterialSpec(youngs_modulus=1e5))])
 
 
 @pytest.mark.parametrize("cfl", [0.4, 0.1])
@@ -28,28 +29,16 @@ def test_a_block_holds_below_the_friction_angle_and_slides_at_coulombs_rate_abov
     """mu 0.5 (friction angle 26.6 degrees). At 20: after settling (frame 20) it creeps under a tenth of
     a cell in the next second (measured 0.0005 and 0.006 cells at cfl 0.4 and 0.1); at 35 it slides
     with g (sin - mu cos) within 5% (measured: 0.6232 and 0.6231 against 0.6232)."""
-    mu, g, h0, xc, half = 0.5, 3.8, 0.1, 0.6, 0.04
+    mu, g = 0.5, 3.8
     theta = math.radians(theta_deg)
-    normal = np.array([-math.sin(theta), math.cos(theta), 0.0])
-    center = np.array([xc, h0 + math.tan(theta) * xc, 0.25]) + normal * (half + DX / 8)
-    scene = block_scene(TerrainSpec(kind="incline", height=h0, slope_deg=theta_deg, friction=mu, contact="spring"),
-                        center.tolist(), theta_deg, cfl)
-    sim = Simulator(scene, build_particles(scene))
-    try:
-        downhill = np.array([-math.cos(theta), -math.sin(theta), 0.0])
-        start, travel = com(sim), []
-        for _ in range(145 if math.tan(theta) <= mu else 60):
-            sim.step()
-            travel.append((com(sim) - start) @ downhill)
-        travel = np.array(travel)
-        if math.tan(theta) <= mu:
-            assert abs(travel[19]) < DX / 4 and abs(travel[144] - travel[19]) < 0.1 * DX
-        else:
-            t = np.arange(1, 61) * scene.frame_dt
-            accel = 2 * np.polyfit(t[20:], travel[20:], 2)[0]
-            assert accel == pytest.approx(g * (math.sin(theta) - mu * math.cos(theta)), rel=0.05)
-    finally:
-        sim.close()
+    scene = incline_scene(theta_deg, mu, "spring", cfl=cfl, flip=0.99, pic_time=PIC_TIME)
+    travel = downhill_travel(scene, 145 if math.tan(theta) <= mu else 60)
+    if math.tan(theta) <= mu:
+        assert abs(travel[19]) < DX / 4 and abs(travel[144] - travel[19]) < 0.1 * DX
+    else:
+        t = np.arange(1, 61) * scene.frame_dt
+        accel = 2 * np.polyfit(t[20:], travel[20:], 2)[0]
+        assert accel == pytest.approx(g * (math.sin(theta) - mu * math.cos(theta)), rel=0.05)
 
 
 @pytest.mark.parametrize("stiffness", [3e4, 2e6])
@@ -87,17 +76,17 @@ def test_a_population_plays_as_its_members_do():
     carries each member's springs as the member alone does."""
     from codesign_mpm.batch import BatchSimulator
 
-    scenes = [block_scene(TerrainSpec(height=0.1, friction=0.5, contact="spring"), [0.5, 0.14 + DX / 8, 0.25])]
-    particles = build_particles(scenes[0])
+    scene = block_scene(TerrainSpec(height=0.1, friction=0.5, contact="spring"), [0.5, 0.14 + DX / 8, 0.25])
+    particles = build_particles(scene)
     stiff = replace(particles, youngs_modulus=particles.youngs_modulus * 4)
     alone = []
     for member in (particles, stiff):
-        sim = Simulator(scenes[0], member)
+        sim = Simulator(scene, member)
         for _ in range(20):
             sim.step()
         alone.append((sim.particles_state()[0], sim.contact_springs()))
         sim.close()
-    batch = BatchSimulator(scenes[0], [particles, stiff])
+    batch = BatchSimulator(scene, [particles, stiff])
     try:
         for _ in range(20):
             batch.step()
