@@ -25,10 +25,11 @@ class ParticleConfig:
     )
     muscle_init: str = field(
         default="environment",
-        metadata={"choices": ["grid", "environment", "random"],
+        metadata={"choices": ["grid", "environment", "uniform", "random"],
                   "help": "environment: the environment's own muscles (an animal's groups; a box's grid of "
-                          "robot.muscle_groups), as the paper; grid: a near-cubic block grid of K muscles; "
-                          "random: N(0, 1)"},
+                          "robot.muscle_groups), as the paper's animals; grid: a near-cubic block grid of K "
+                          "muscles; uniform: equal logits, every particle in every muscle alike (the released "
+                          "SoftZoo's start for design optimisation); random: N(0, 1)"},
     )
     muscle_sharpness: float = field(
         default=5.0, metadata={"ge": 0, "help": "grid, environment init: logit of a particle's own muscle (others 0)"}
@@ -81,9 +82,9 @@ class VoxelConfig:
         "choices": ["trilinear", "nearest"],
         "help": "how particles read voxel logits: trilinear between voxel centres, or their own voxel's (the paper)"})
     muscle_init: str = field(default="environment", metadata={
-        "choices": ["environment", "random"],
+        "choices": ["environment", "uniform", "random"],
         "help": "environment: each voxel's mean of the environment's own muscles (a box's grid, an animal's groups) "
-                "times muscle_sharpness; random: N(0, 1)"})
+                "times muscle_sharpness; uniform: equal logits (the released SoftZoo's start); random: N(0, 1)"})
     muscle_sharpness: float = field(default=5.0, metadata={"ge": 0, "help": "environment init: logit scale"})
     init_occupancy_logit: float = _occupancy_logit()
     min_stiffness_ratio: float = _min_stiffness_ratio()

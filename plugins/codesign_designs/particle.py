@@ -36,6 +36,8 @@ class ParticleRepresentation(Representation):
             muscle[np.arange(n), grid_partition(space.points, near_cubic_grid(k))] = cfg.muscle_sharpness
         elif cfg.muscle_init == "environment":
             muscle = cfg.muscle_sharpness * environment_muscle(space)
+        elif cfg.muscle_init == "uniform":
+            muscle = np.zeros((n, k))
         else:
             muscle = rng.normal(0.0, 1.0, (n, k))
         dtype = torch.get_default_dtype()

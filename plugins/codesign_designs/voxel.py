@@ -38,6 +38,8 @@ class VoxelRepresentation(Representation):
             np.add.at(total, own[:, 0], environment_muscle(space))
             count = np.bincount(own[:, 0], minlength=voxels)[:, None]
             muscle = cfg.muscle_sharpness * total / np.maximum(count, 1)
+        elif cfg.muscle_init == "uniform":
+            muscle = np.zeros((voxels, k))
         else:
             muscle = rng.normal(0.0, 1.0, (voxels, k))
         dtype = torch.get_default_dtype()
