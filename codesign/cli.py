@@ -116,7 +116,8 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
         docs: bool = typer.Option(False, "--docs", help="Also write its section into docs/studies.md and its chart "
                                                         "into docs/images/studies/."),
         report: bool = typer.Option(False, "--report", help="Run nothing: write the table of the runs finished so "
-                                                            "far (a study under way, in --dir or its default)."),
+                                                            "far (a study under way, in --dir or its default), or, "
+                                                            "where none are, of the committed docs/data/studies/."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
     ) -> None:
         """Run one of the paper's studies (every arm x seed, continuing a killed one) and print its table."""
@@ -128,7 +129,7 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
                                 f"again (it continues from its last point)")
         if report:
             directory = studies.study_dir(spec, study_dir)
-            studies.write_results(spec, directory)
+            studies.write_results(spec, directory, studies.records_for_report(spec, directory))
         else:
             directory = studies.run_study(spec, study_dir, progress=not no_progress)
         if docs:

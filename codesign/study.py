@@ -46,6 +46,7 @@ class Arm:
     set: dict[str, Any] = field(default_factory=dict)  # dotted recipe key -> value, merged into the base
     paper: float | None = None
     seeds: tuple[int, ...] | None = None  # its own seeds (an arm whose runs do not depend on the seed: one)
+    reported: str | None = None  # "best" or "mean" over its seeds, as the paper reports this arm (None: the study's)
 
     @property
     def slug(self) -> str:
@@ -67,6 +68,7 @@ class Study:
     parameters: dict = field(default_factory=dict)  # the analysis's own settings
     still: bool = True  # also play each arm's starting design without any action (the return of doing nothing)
     prepared_arms: tuple[str, ...] | None = None  # labels of the arms that start from `prepare` (None: all)
+    reported: str = "best"  # the value compared with the paper's: "best" of the seeds' runs, or their "mean"
 
 
 @dataclass(frozen=True)
@@ -78,15 +80,33 @@ class Row:
     torn: tuple[float, ...]  # each seed's best episode: mass fraction torn off
     wall_time: tuple[float, ...]
     still: float | None = None  # the starting design with no action (first seed): return / horizon
+    first: tuple[float, ...] = ()  # each seed's iteration 0 (its starting design and controller): return / horizon
+    reported: str = "best"
 
     @property
     def mean(self) -> float:
         return statistics.fmean(self.per_step)
 
     @property
+    def best(self) -> float:
+        return max(self.per_step)
+
+    @property
+    def value(self) -> float:
+        """What the table compares with the paper: the best of the seeds' runs, or their mean."""
+        return self.best if self.reported == "best" else self.mean
+
+    @property
     def std(self) -> float:
         """Over seeds (n - 1); nan for one seed."""
         return statistics.stdev(self.per_step) if len(self.per_step) > 1 else float("nan")
+
+    @property
+    def gain(self) -> float:
+        """Mean over seeds of the best episode's gain over the run's own iteration 0; nan when not logged."""
+        if len(self.first) != len(self.per_step):
+            return float("nan")
+        return statistics.fmean(b - f for b, f in zip(self.per_step, self.first))
 
 
 def _dotted(items: Mapping[str, Any]) -> dict:
@@ -103,7 +123,7 @@ def _dotted(items: Mapping[str, Any]) -> dict:
 
 def _grid_arms(grid: list, paper_table: Mapping, scale: str, where: str) -> list[dict]:
     """Arms for every combination of the grid's dimensions (each a list of {label, set, scales,
-    only}; a later dimension's keys win), labelled "a / b / ...", with the paper's number looked up
+    only, reported}; a later dimension's keys win), labelled "a / b / ...", with the paper's number looked up
     in the nested `paper_table` by the labels in order (the last level may be a list, one number
     per label). A value with `only: [scales]` joins the grid at those scales alone."""
     arms = []
@@ -127,6 +147,9 @@ def _grid_arms(grid: list, paper_table: Mapping, scale: str, where: str) -> list
                 scales.setdefault(name, {}).update(changes)
         if scales:
             arm["scales"] = scales
+        reported = [c["reported"] for c in combination if "reported" in c]
+        if reported:
+            arm["reported"] = reported[-1]
         arms.append(arm)
     if not arms:
         raise RecipeError(f"invalid {where}: study.grid: a dimension is empty")
@@ -185,16 +208,17 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
     arms = []
     parameters = {**(spec.get("parameters") or {}), **(scales.get(scale, {}).get("parameters") or {})}
     for i, arm in enumerate(spec.get("arms") or []):
-        unknown = set(arm) - {"label", "set", "paper", "scales", "seeds"}
+        unknown = set(arm) - {"label", "set", "paper", "scales", "seeds", "reported"}
         if "label" not in arm or unknown:
-            raise RecipeError(f"invalid {where}: study.arms[{i}]: needs 'label' and takes set, paper, scales, seeds"
-                              + (f"; unknown {', '.join(sorted(unknown))}" if unknown else ""))
+            raise RecipeError(f"invalid {where}: study.arms[{i}]: needs 'label' and takes set, paper, scales, seeds, "
+                              f"reported" + (f"; unknown {', '.join(sorted(unknown))}" if unknown else ""))
+        _check_reported(arm.get("reported"), f"{where}: study.arms[{i}].reported", optional=True)
         changes = {**(arm.get("set") or {}), **((arm.get("scales") or {}).get(scale) or {})}
         own = arm.get("seeds")
         if own is not None and (not isinstance(own, list) or not own or not all(isinstance(v, int) for v in own)):
             raise RecipeError(f"invalid {where}: study.arms[{i}].seeds: {own!r}; give a non-empty list of integers")
         chosen = (tuple(v for v in own if v in seeds) or seeds[:1]) if own is not None else None
-        arms.append(Arm(arm["label"], changes, arm.get("paper"), chosen))
+        arms.append(Arm(arm["label"], changes, arm.get("paper"), chosen, arm.get("reported")))
     prepare, prepared_arms = None, None
     if spec.get("prepare") is not None:
         spec_prepare = spec["prepare"]
@@ -209,9 +233,20 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
             prepared_arms = tuple(named)
     if len({a.slug for a in arms}) != len(arms):
         raise RecipeError(f"invalid {where}: study.arms: two labels give the same directory name")
+    reported = _check_reported(spec.get("reported", "best"), f"{where}: study.reported")
     return Study(path.stem, spec.get("title", path.stem), spec.get("paper", ""), spec.get("differs", ""),
                  seeds, tuple(arms), recipe, scale, prepare, analysis, parameters, bool(spec.get("still", True)),
-                 prepared_arms)
+                 prepared_arms, reported)
+
+
+REPORTED = ("best", "mean")
+
+
+def _check_reported(value: Any, key: str, optional: bool = False) -> Any:
+    if (value is None and optional) or value in REPORTED:
+        return value
+    raise RecipeError(f"invalid {key}: {value!r}; allowed: {', '.join(REPORTED)} (the best of an arm's seeds, as the "
+                      f"paper reports diff-physics, or their mean, as it reports PPO)")
 
 
 PREPARE_DIR = "prepare"
@@ -318,61 +353,98 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
     return root
 
 
-def _summary_of(run: Path) -> dict:
-    from codesign.runner import SUMMARY_FILE
-
-    return json.loads((run / SUMMARY_FILE).read_text(encoding="utf-8"))
+RUNS_FILE = "runs.jsonl"  # what the table is built from: a header line, then one line per finished run
+DOCS_DATA = Path("docs") / "data" / "studies"
 
 
-def _per_step_return(run: Path) -> float:
-    """A finished run's best return in the paper's unit: divided by its horizon."""
-    from codesign.runner import CONFIG_FILE
+def _run_record(arm: Arm, run: Path) -> dict:
+    """A finished run, compactly: its seed, horizon, every iteration's episode return (the first is
+    its starting design and controller), its best return, torn-off mass and wall time."""
+    from codesign.runner import CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, read_metrics
 
-    return _summary_of(run)["best"]["episode_return"] / OmegaConf.load(run / CONFIG_FILE).environment.horizon
+    summary = json.loads((run / SUMMARY_FILE).read_text(encoding="utf-8"))
+    config = OmegaConf.load(run / CONFIG_FILE)
+    returns = [row["episode_return"] for row in read_metrics(run / METRICS_FILE) if "episode_return" in row]
+    return {"arm": arm.label, "run": run.name, "seed": int(config.seed), "horizon": int(config.environment.horizon),
+            "best": summary["best"]["episode_return"], "returns": returns,
+            "torn": load_best_info(run).get("torn_fraction", float("nan")),  # environments with bodies
+            "wall_time": summary["wall_time"]}
 
 
-def collect(study: Study, root: Path) -> list[Row]:
-    """Each arm's per-step return, torn-off mass and wall time over the seeds of its finished runs
-    (arms with none yet are left out: a study under way can be reported)."""
+def extract(study: Study, root: Path) -> list[dict]:
+    """The records of the study's finished runs in `root`, and of each arm's no-action episode
+    (`still`); arms with none yet are left out (a study under way can be reported)."""
     from codesign import sweep as sweeps
 
-    rows = []
+    records = []
     stills = still_dirs(study, root)
     for arm in study.arms:
-        runs = [d for d in sorted((root / arm.slug).glob("t*-seed*")) if sweeps.finished(d)]
+        for run in sorted((root / arm.slug).glob("t*-seed*")):
+            if sweeps.finished(run):
+                records.append(_run_record(arm, run))
+        still = stills[arm.slug]
+        if sweeps.finished(still):
+            record = _run_record(arm, still)
+            records.append({"arm": arm.label, "still": record["best"] / record["horizon"]})
+    return records
+
+
+def data_path(study: Study, repo: Path = Path(".")) -> Path:
+    """Where a study's records are committed: docs/data/studies/NAME[-SCALE].jsonl."""
+    suffix = "" if study.scale == SCALE_DEFAULT else f"-{study.scale}"
+    return repo / DOCS_DATA / f"{study.name}{suffix}.jsonl"
+
+
+def write_records(study: Study, records: list[dict], path: Path) -> None:
+    header = {"study": study.name, "scale": study.scale}
+    path.write_text("".join(json.dumps(r) + "\n" for r in [header, *records]), encoding="utf-8")
+
+
+def read_records(path: Path) -> tuple[dict, list[dict]]:
+    """(header, records) of a runs.jsonl."""
+    lines = [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+    if not lines or "study" not in lines[0]:
+        raise CodesignError(f"{path} is not a study's records (its first line names no study)")
+    return lines[0], lines[1:]
+
+
+def rows_from(study: Study, records: list[dict]) -> list[Row]:
+    """Each arm's row from its records, in the study's order of arms."""
+    rows = []
+    for arm in study.arms:
+        runs = [r for r in records if r["arm"] == arm.label and "best" in r]
         if not runs:
             continue
-        per_step, torn, wall = [], [], []
-        for run in runs:
-            per_step.append(_per_step_return(run))
-            torn.append(load_best_info(run).get("torn_fraction", float("nan")))  # environments with bodies
-            wall.append(_summary_of(run)["wall_time"])
-        still = _per_step_return(stills[arm.slug]) if sweeps.finished(stills[arm.slug]) else None
-        rows.append(Row(arm, tuple(per_step), tuple(torn), tuple(wall), still))
+        stills = [r["still"] for r in records if r["arm"] == arm.label and "still" in r]
+        rows.append(Row(arm, tuple(r["best"] / r["horizon"] for r in runs), tuple(r["torn"] for r in runs),
+                        tuple(r["wall_time"] for r in runs), stills[0] if stills else None,
+                        tuple(r["returns"][0] / r["horizon"] for r in runs if r["returns"]),
+                        arm.reported or study.reported))
     if not rows:
-        raise CodesignError(f"study {study.name}: no arm has a finished run in {root}; "
-                            f"run `codesign study {study.name}` to (re)start it")
+        raise CodesignError(f"study {study.name}: no arm has a finished run; run `codesign study {study.name}` "
+                            f"to (re)start it")
     return rows
 
 
 def verdict(rows: list[Row]) -> str:
-    """Whether the paper's ordering of the arms holds here, and how clearly."""
+    """Whether the paper's ordering of the arms holds here (by each arm's reported value: the best of
+    its seeds, or their mean), and which neighbours the seeds do not separate."""
     compared = [r for r in rows if r.arm.paper is not None]
     if len(compared) < 2:
         return "The paper gives fewer than two of these numbers: no ordering to compare."
     paper_order = sorted(compared, key=lambda r: r.arm.paper, reverse=True)
-    ours_order = sorted(compared, key=lambda r: r.mean, reverse=True)
-    tau = kendalltau([r.arm.paper for r in compared], [r.mean for r in compared]).statistic
-    agreement = f"Kendall's tau {tau:.2f}" if math.isfinite(tau) else "Kendall's tau undefined: tied means"
+    ours_order = sorted(compared, key=lambda r: r.value, reverse=True)
+    tau = kendalltau([r.arm.paper for r in compared], [r.value for r in compared]).statistic
+    agreement = f"Kendall's tau {tau:.2f}" if math.isfinite(tau) else "Kendall's tau undefined: tied values"
     unclear = [f"{a.arm.label} / {b.arm.label}" for a, b in zip(paper_order, paper_order[1:])
-               if not abs(a.mean - b.mean) > (a.std if math.isfinite(a.std) else 0) + (b.std if math.isfinite(b.std) else 0)]
+               if not abs(a.value - b.value) > (a.std if math.isfinite(a.std) else 0) + (b.std if math.isfinite(b.std) else 0)]
     if len(compared) > LISTED_ARMS:  # a benchmark grid: the orderings are too long to read, the numbers are not
-        swapped = sum((a.arm.paper - b.arm.paper) * (a.mean - b.mean) < 0 for i, a in enumerate(compared)
+        swapped = sum((a.arm.paper - b.arm.paper) * (a.value - b.value) < 0 for i, a in enumerate(compared)
                       for b in compared[i + 1:])
         pairs = len(compared) * (len(compared) - 1) // 2
-        return (f"Over the {len(compared)} arms with a number in the paper, our means order {pairs - swapped} of "
+        return (f"Over the {len(compared)} arms with a number in the paper, ours order {pairs - swapped} of "
                 f"{pairs} pairs as the paper's do ({agreement}); {len(unclear)} of the {len(compared) - 1} "
-                f"neighbours in the paper's ordering are within one standard deviation over seeds.")
+                f"neighbours in the paper's ordering differ by less than their standard deviations over seeds.")
     names = " > ".join(r.arm.label for r in paper_order)
     if paper_order == ours_order:
         text = f"The paper's ordering ({names}) **holds** here ({agreement})."
@@ -380,7 +452,7 @@ def verdict(rows: list[Row]) -> str:
         text = (f"The paper's ordering ({names}) **does not hold** here: ours is "
                 f"{' > '.join(r.arm.label for r in ours_order)} ({agreement}).")
     if unclear:
-        text += (" Within one standard deviation of each other over seeds (not separated at this scale): "
+        text += (" Closer than the sum of their standard deviations over seeds (not separated at this scale): "
                  + ", ".join(unclear) + ".")
     return text
 
@@ -394,18 +466,19 @@ def _percent(v: float) -> str:
 
 
 def table_markdown(rows: list[Row]) -> str:
-    lines = ["| arm | ours: per-step return, mean | std over seeds | seeds | no action | paper | torn-off mass (max) "
-             "| wall s (mean) |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| arm | ours: per-step return, reported | best | mean | std over seeds | seeds | gain over iteration 0 "
+             "| no action | paper | torn-off mass (max) | wall s (mean) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
-        lines.append(f"| {r.arm.label} | {_fmt(r.mean)} | {_fmt(r.std)} | {len(r.per_step)} | {_fmt(r.still)} | "
+        lines.append(f"| {r.arm.label} | {_fmt(r.value)} ({r.reported}) | {_fmt(r.best)} | {_fmt(r.mean)} | "
+                     f"{_fmt(r.std)} | {len(r.per_step)} | {_fmt(r.gain)} | {_fmt(r.still)} | "
                      f"{_fmt(r.arm.paper) if r.arm.paper is not None else '-'} | {_percent(max(r.torn))} | "
                      f"{sum(r.wall_time) / len(r.wall_time):.0f} |")
     return "\n".join(lines)
 
 
 def plot(study: Study, rows: list[Row], path: Path) -> Path:
-    """Ours (mean, one std over seeds, each seed a dot) beside the paper's number, per arm."""
+    """Ours (the reported value, one std over seeds, each seed a dot) beside the paper's number, per arm."""
     from codesign.plots import pyplot
 
     plt = pyplot()
@@ -413,9 +486,9 @@ def plot(study: Study, rows: list[Row], path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(1.6 + (0.45 if many else 1.3) * len(rows), 6.5 if many else 3.2),
                            constrained_layout=True)
     xs = range(len(rows))
-    ax.bar([x - 0.2 for x in xs], [r.mean for r in rows], width=0.4, yerr=[0 if math.isnan(r.std) else r.std
-                                                                             for r in rows],
-           capsize=3, label=f"ours ({study.scale} scale)")
+    ax.bar([x - 0.2 for x in xs], [r.value for r in rows], width=0.4, yerr=[0 if math.isnan(r.std) else r.std
+                                                                              for r in rows],
+           capsize=3, label=f"ours ({study.scale} scale; {' or '.join(sorted({r.reported for r in rows}))} of seeds)")
     for x, r in zip(xs, rows):
         ax.scatter([x - 0.2] * len(r.per_step), r.per_step, color="k", s=8, zorder=3)
     ax.bar([x + 0.2 for x in xs], [r.arm.paper if r.arm.paper is not None else 0 for r in rows], width=0.4,
@@ -460,33 +533,64 @@ def section(study: Study, rows: list[Row]) -> str:
     if runs < planned:
         parts.insert(0, f"**Under way**: {runs} of {planned} runs finished "
                         f"({len(rows)} of {len(study.arms)} arms have at least one).")
+    scale = "" if study.scale == SCALE_DEFAULT else f" --scale {study.scale}"
+    data = data_path(study, Path(".")).relative_to(DOCS_PAGE.parent).as_posix()
+    parts.append(f"Data: [{data}]({data}), one line per run (every iteration's return); "
+                 f"`codesign study {study.name}{scale} --report --docs` rebuilds this section from it.")
     body = "\n\n".join(parts)
     return _heading(study) + body + "\n" + _differs(study)
 
 
-def write_results(study: Study, root: Path) -> list[Row]:
-    """table.csv, table.md, the chart and section.md in the study's directory."""
-    rows = collect(study, root)
+def records_for_report(study: Study, root: Path) -> list[dict]:
+    """The records of the runs finished in `root`; where it holds none, the committed ones
+    (docs/data/studies/), so a fresh clone rebuilds the docs' tables from data alone."""
+    records = extract(study, root) if root.is_dir() else []
+    if not any("best" in r for r in records) and data_path(study).is_file():
+        header, records = read_records(data_path(study))
+        print(f"[{study.name}] no finished runs in {root}: reporting the committed {data_path(study)}",
+              file=sys.stderr, flush=True)
+    return records
+
+
+def write_results(study: Study, root: Path, records: list[dict] | None = None) -> list[Row]:
+    """runs.jsonl, table.csv, table.md, the chart and section.md in the study's directory, from
+    `records` (default: its finished runs')."""
+    records = extract(study, root) if records is None else records
+    rows = rows_from(study, records)
+    root.mkdir(parents=True, exist_ok=True)
+    write_records(study, records, root / RUNS_FILE)
     with open(root / "table.csv", "w", newline="", encoding="utf-8") as f:
         out = csv.writer(f)
-        out.writerow(["arm", "mean", "std", "seeds", "paper", "per_step", "torn", "wall_time", "still"])
+        out.writerow(["arm", "reported", "value", "best", "mean", "std", "seeds", "gain", "paper", "per_step", "first",
+                      "torn", "wall_time", "still"])
         for r in rows:
-            out.writerow([r.arm.label, r.mean, r.std, len(r.per_step), r.arm.paper, list(r.per_step), list(r.torn),
-                          list(r.wall_time), r.still])
+            out.writerow([r.arm.label, r.reported, r.value, r.best, r.mean, r.std, len(r.per_step), r.gain,
+                          r.arm.paper, list(r.per_step), list(r.first), list(r.torn), list(r.wall_time), r.still])
     (root / "table.md").write_text(table_markdown(rows) + "\n", encoding="utf-8")
     plot(study, rows, root / f"{study.name}.png")
     (root / "section.md").write_text(section(study, rows), encoding="utf-8")
     return rows
 
 
+def docs_links(text: str, charts: list[str]) -> str:
+    """A section's chart links as docs/studies.md needs them (the charts go to docs/images/studies/)."""
+    for chart in charts:
+        text = text.replace(f"]({chart})", f"](images/studies/{chart})")
+    return text
+
+
 def publish(study: Study, root: Path, repo: Path = Path(".")) -> Path:
-    """Put the study's section into docs/studies.md (replacing its earlier one) and its chart into docs/images."""
+    """Put the study's section into docs/studies.md (replacing its earlier one), its chart into
+    docs/images and its records into docs/data/studies/."""
     images = repo / DOCS_IMAGES
     images.mkdir(parents=True, exist_ok=True)
-    text = (root / "section.md").read_text(encoding="utf-8")
-    for chart in sorted(root.glob(f"{study.name}*.png")):  # the study's charts, as its section names them
+    charts = sorted(root.glob(f"{study.name}*.png"))  # the study's charts, as its section names them
+    for chart in charts:
         shutil.copyfile(chart, images / chart.name)
-        text = text.replace(f"]({chart.name})", f"](images/studies/{chart.name})")
+    if (root / RUNS_FILE).is_file():
+        data_path(study, repo).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(root / RUNS_FILE, data_path(study, repo))
+    text = docs_links((root / "section.md").read_text(encoding="utf-8"), [c.name for c in charts])
     begin, end = f"<!-- study:{study.name} -->", f"<!-- /study:{study.name} -->"
     page = repo / DOCS_PAGE
     current = page.read_text(encoding="utf-8") if page.is_file() else "# The paper's studies\n"
@@ -495,3 +599,10 @@ def publish(study: Study, root: Path, repo: Path = Path(".")) -> Path:
     current = pattern.sub(lambda _: block, current) if pattern.search(current) else current.rstrip() + f"\n\n{block}\n"
     page.write_text(current, encoding="utf-8")
     return page
+
+
+def published_section(page: Path, name: str) -> str | None:
+    """The text of a study's section in docs/studies.md (None if it has none)."""
+    found = re.search(re.escape(f"<!-- study:{name} -->") + "\n(.*?)" + re.escape(f"<!-- /study:{name} -->"),
+                      page.read_text(encoding="utf-8"), re.S)
+    return found.group(1) if found else None

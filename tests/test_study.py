@@ -10,9 +10,12 @@ import yaml
 
 from codesign import RecipeError
 from codesign.recipe import RECIPES_DIR, resolve_recipe
-from codesign.study import Arm, Row, arm_recipe, load_study, publish, verdict
+from codesign.study import (DOCS_DATA, DOCS_PAGE, Arm, Row, arm_recipe, data_path, docs_links, load_study, publish,
+                            published_section, read_records, rows_from, section, verdict)
 
 SHIPPED = sorted((RECIPES_DIR / "studies").glob("*.yaml"))
+REPO = RECIPES_DIR.parent
+COMMITTED = sorted((REPO / DOCS_DATA).glob("*.jsonl"))
 
 
 @pytest.fixture
@@ -140,6 +143,46 @@ def test_the_verdict_says_whether_the_paper_ordering_holds_and_which_arms_the_se
     assert "**holds**" in close and "not separated at this scale): B / A" in close
 
 
+def test_an_arm_reports_the_best_of_its_seeds_or_their_mean_and_its_gain_over_iteration_0(toy_study):
+    """The paper reports diff-physics as the best of 8 seeds and PPO as the mean of 5: the verdict
+    compares what the study (or the arm) says it reports; the gain is over each run's own start."""
+    best = Row(Arm("A", paper=0.3), (1.0, 5.0), (0.0, 0.0), (1.0, 1.0), first=(0.5, 1.0))
+    steady = Row(Arm("B", paper=0.1), (3.0, 3.2), (0.0, 0.0), (1.0, 1.0), first=(3.0, 3.0))
+    assert (best.value, best.gain, steady.gain) == (5.0, 2.25, pytest.approx(0.1))
+    assert "(A > B) **holds**" in verdict([best, steady])
+    mean = Row(Arm("A", paper=0.3), (1.0, 5.0), (0.0, 0.0), (1.0, 1.0), reported="mean")
+    assert "**does not hold** here: ours is B > A" in verdict([mean, steady])
+    data = yaml.safe_load(toy_study.read_text())
+    data["study"]["arms"][1]["reported"] = "mean"
+    toy_study.write_text(yaml.safe_dump(data))
+    assert [arm.reported for arm in load_study(str(toy_study)).arms] == [None, "mean"]
+    data["study"]["reported"] = "median"
+    toy_study.write_text(yaml.safe_dump(data))
+    with pytest.raises(RecipeError, match=r"study.reported: 'median'; allowed: best, mean"):
+        load_study(str(toy_study))
+
+
+def test_the_committed_records_alone_rebuild_a_published_section(tmp_path, toy_study, cli, monkeypatch):
+    """A fresh clone has no runs: `--report` then builds the table from docs/data/studies/, and
+    what it writes is what `--docs` published (every number traceable to the committed records)."""
+    code, out, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
+    assert code == 0, err
+    repo = tmp_path / "repo"
+    (repo / "docs").mkdir(parents=True)
+    study = load_study(str(toy_study))
+    publish(study, tmp_path / "s", repo)
+    header, records = read_records(data_path(study, repo))
+    assert header == {"study": "toy_bound", "scale": "cpu"}
+    runs = [r for r in records if "best" in r]
+    assert len(runs) == 4 and all(len(r["returns"]) == 3 for r in runs)  # the toy evaluates 3 episodes
+    monkeypatch.chdir(repo)
+    code, out, err = cli("study", str(toy_study), "--dir", str(tmp_path / "none"), "--report")
+    assert code == 0, err
+    assert "reporting the committed" in err
+    published = published_section(repo / DOCS_PAGE, "toy_bound")
+    assert docs_links((tmp_path / "none" / "section.md").read_text(), ["toy_bound.png"]) == published
+
+
 def test_publish_replaces_the_study_section_in_docs(tmp_path, toy_study, cli):
     cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
     repo = tmp_path / "repo"
@@ -257,4 +300,15 @@ def test_a_large_table_verdict_counts_the_pairs_ordered_as_in_the_paper():
     rows = [_row(f"arm{i}", paper, (mean, mean + 0.01)) for i, (paper, mean) in
             enumerate([(0.1, 1.0), (0.2, 2.0), (0.3, 3.0), (0.4, 4.0), (0.5, 5.0), (0.6, 7.0), (0.7, 6.0)])]
     text = verdict(rows)
-    assert "Over the 7 arms with a number in the paper, our means order 20 of 21 pairs as the paper's do" in text
+    assert "Over the 7 arms with a number in the paper, ours order 20 of 21 pairs as the paper's do" in text
+
+
+@pytest.mark.parametrize("path", COMMITTED, ids=[p.stem for p in COMMITTED])
+def test_each_section_in_the_docs_is_what_its_committed_records_rebuild(path, monkeypatch):
+    """docs/studies.md's tables come from docs/data/studies/ alone (`codesign study NAME --report --docs`)."""
+    header, records = read_records(path)
+    monkeypatch.chdir(REPO)
+    study = load_study(header["study"], header["scale"])
+    assert data_path(study) == path.relative_to(REPO)
+    text = docs_links(section(study, rows_from(study, records)), [f"{study.name}.png"])
+    assert published_section(REPO / DOCS_PAGE, study.name) == text
