@@ -47,6 +47,7 @@ class Arm:
     paper: float | None = None
     seeds: tuple[int, ...] | None = None  # its own seeds (an arm whose runs do not depend on the seed: one)
     reported: str | None = None  # "best" or "mean" over its seeds, as the paper reports this arm (None: the study's)
+    cell: str | None = None  # a grid's arms: the labels but the last (the method): arms compared in one table cell
 
     @property
     def slug(self) -> str:
@@ -102,6 +103,13 @@ class Row:
         return statistics.stdev(self.per_step) if len(self.per_step) > 1 else float("nan")
 
     @property
+    def moves(self) -> bool:
+        """Whether it beats doing nothing by more than its spread over seeds (unknown no-action: yes)."""
+        if self.still is None:
+            return True
+        return self.value - self.still > (self.std if math.isfinite(self.std) else 0.0)
+
+    @property
     def gain(self) -> float:
         """Mean over seeds of the best episode's gain over the run's own iteration 0; nan when not logged."""
         if len(self.first) != len(self.per_step):
@@ -123,7 +131,7 @@ def _dotted(items: Mapping[str, Any]) -> dict:
 
 def _grid_arms(grid: list, paper_table: Mapping, scale: str, where: str) -> list[dict]:
     """Arms for every combination of the grid's dimensions (each a list of {label, set, scales,
-    only, reported}; a later dimension's keys win), labelled "a / b / ...", with the paper's number looked up
+    only, reported, seeds}; a later dimension's keys win), labelled "a / b / ...", with the paper's number looked up
     in the nested `paper_table` by the labels in order (the last level may be a list, one number
     per label). A value with `only: [scales]` joins the grid at those scales alone."""
     arms = []
@@ -140,16 +148,17 @@ def _grid_arms(grid: list, paper_table: Mapping, scale: str, where: str) -> list
             else:
                 node = None
         arm = {"label": " / ".join(labels), "set": {k: v for c in combination for k, v in (c.get("set") or {}).items()},
-               "paper": node if isinstance(node, (int, float)) else None}
+               "paper": node if isinstance(node, (int, float)) else None, "cell": " / ".join(labels[:-1])}
         scales: dict = {}
         for c in combination:
             for name, changes in (c.get("scales") or {}).items():
                 scales.setdefault(name, {}).update(changes)
         if scales:
             arm["scales"] = scales
-        reported = [c["reported"] for c in combination if "reported" in c]
-        if reported:
-            arm["reported"] = reported[-1]
+        for key in ("reported", "seeds"):  # a later dimension's wins
+            values = [c[key] for c in combination if key in c]
+            if values:
+                arm[key] = values[-1]
         arms.append(arm)
     if not arms:
         raise RecipeError(f"invalid {where}: study.grid: a dimension is empty")
@@ -208,7 +217,7 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
     arms = []
     parameters = {**(spec.get("parameters") or {}), **(scales.get(scale, {}).get("parameters") or {})}
     for i, arm in enumerate(spec.get("arms") or []):
-        unknown = set(arm) - {"label", "set", "paper", "scales", "seeds", "reported"}
+        unknown = set(arm) - {"label", "set", "paper", "scales", "seeds", "reported", "cell"}
         if "label" not in arm or unknown:
             raise RecipeError(f"invalid {where}: study.arms[{i}]: needs 'label' and takes set, paper, scales, seeds, "
                               f"reported" + (f"; unknown {', '.join(sorted(unknown))}" if unknown else ""))
@@ -218,7 +227,7 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
         if own is not None and (not isinstance(own, list) or not own or not all(isinstance(v, int) for v in own)):
             raise RecipeError(f"invalid {where}: study.arms[{i}].seeds: {own!r}; give a non-empty list of integers")
         chosen = (tuple(v for v in own if v in seeds) or seeds[:1]) if own is not None else None
-        arms.append(Arm(arm["label"], changes, arm.get("paper"), chosen, arm.get("reported")))
+        arms.append(Arm(arm["label"], changes, arm.get("paper"), chosen, arm.get("reported"), arm.get("cell")))
     prepare, prepared_arms = None, None
     if spec.get("prepare") is not None:
         spec_prepare = spec["prepare"]
@@ -428,10 +437,18 @@ def rows_from(study: Study, records: list[dict]) -> list[Row]:
 
 def verdict(rows: list[Row]) -> str:
     """Whether the paper's ordering of the arms holds here (by each arm's reported value: the best of
-    its seeds, or their mean), and which neighbours the seeds do not separate."""
-    compared = [r for r in rows if r.arm.paper is not None]
+    its seeds, or their mean), and which neighbours the seeds do not separate. A cell (a grid's
+    methods for one task, body and environment; else the whole table) none of whose arms beats doing
+    nothing by more than its spread over seeds is noise: said, not ranked."""
+    cells: dict[str | None, list[Row]] = {}
+    for r in rows:
+        cells.setdefault(r.arm.cell, []).append(r)
+    still = [r for cell in cells.values() if not any(c.moves for c in cell) for r in cell]
+    noise = ("" if not still else f" Not ranked, no better than no action (by more than their spread over seeds): "
+             f"{', '.join(r.arm.label for r in still)}.")
+    compared = [r for r in rows if r.arm.paper is not None and r not in still]
     if len(compared) < 2:
-        return "The paper gives fewer than two of these numbers: no ordering to compare."
+        return "The paper gives fewer than two of these numbers: no ordering to compare." + noise
     paper_order = sorted(compared, key=lambda r: r.arm.paper, reverse=True)
     ours_order = sorted(compared, key=lambda r: r.value, reverse=True)
     tau = kendalltau([r.arm.paper for r in compared], [r.value for r in compared]).statistic
@@ -444,7 +461,8 @@ def verdict(rows: list[Row]) -> str:
         pairs = len(compared) * (len(compared) - 1) // 2
         return (f"Over the {len(compared)} arms with a number in the paper, ours order {pairs - swapped} of "
                 f"{pairs} pairs as the paper's do ({agreement}); {len(unclear)} of the {len(compared) - 1} "
-                f"neighbours in the paper's ordering differ by less than their standard deviations over seeds.")
+                f"neighbours in the paper's ordering differ by less than their standard deviations over seeds."
+                + (f" {len(still)} arms in cells that do no better than no action are not ranked." if still else ""))
     names = " > ".join(r.arm.label for r in paper_order)
     if paper_order == ours_order:
         text = f"The paper's ordering ({names}) **holds** here ({agreement})."
@@ -454,7 +472,7 @@ def verdict(rows: list[Row]) -> str:
     if unclear:
         text += (" Closer than the sum of their standard deviations over seeds (not separated at this scale): "
                  + ", ".join(unclear) + ".")
-    return text
+    return text + noise
 
 
 def _fmt(v: float) -> str:

@@ -162,6 +162,20 @@ def test_an_arm_reports_the_best_of_its_seeds_or_their_mean_and_its_gain_over_it
         load_study(str(toy_study))
 
 
+def test_a_cell_whose_every_arm_does_no_better_than_no_action_is_said_and_not_ranked():
+    """Table 1's turning cells score within noise of a body left alone: ranking them ranks noise."""
+    def row(cell, method, paper, values, still):
+        return Row(Arm(f"{cell} / {method}", paper=paper, cell=cell), values, (0.0,) * 2, (1.0,) * 2, still)
+
+    rows = [row("Turn", "diff", 0.2, (0.010, 0.012), 0.0115), row("Turn", "ppo", 0.1, (0.009, 0.0095), 0.0115),
+            row("Walk", "diff", 0.4, (0.5, 0.6), 0.01), row("Walk", "ppo", 0.3, (0.3, 0.35), 0.01)]
+    text = verdict(rows)
+    assert "(Walk / diff > Walk / ppo) **holds**" in text and "Turn / diff" not in text.split("Not ranked")[0]
+    assert "Not ranked, no better than no action (by more than their spread over seeds): Turn / diff, Turn / ppo" in text
+    rows[1] = row("Turn", "ppo", 0.1, (0.5, 0.51), 0.0115)  # one arm of the cell moves: the cell is ranked
+    assert "Not ranked" not in verdict(rows)
+
+
 def test_the_committed_records_alone_rebuild_a_published_section(tmp_path, toy_study, cli, monkeypatch):
     """A fresh clone has no runs: `--report` then builds the table from docs/data/studies/, and
     what it writes is what `--docs` published (every number traceable to the committed records)."""
