@@ -117,20 +117,20 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
                                                         "into docs/images/studies/."),
         report: bool = typer.Option(False, "--report", help="Run nothing: write the table of the runs finished so "
                                                             "far (a study under way, in --dir or its default), or, "
-                                                            "where none are, of the committed docs/data/studies/."),
+                                                            "where none are, of the committed docs/data/studies/ (an "
+                                                            "analysis: from its committed points)."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
     ) -> None:
         """Run one of the paper's studies (every arm x seed, continuing a killed one) and print its table."""
         from codesign import study as studies
 
         spec = studies.load_study(name, scale)
-        if report and spec.analysis is not None:
-            raise CodesignError(f"--report: {name} is an analysis, which writes its findings when it runs; run it "
-                                f"again (it continues from its last point)")
-        if report:
-            directory = studies.study_dir(spec, study_dir)
+        directory = studies.study_dir(spec, study_dir)
+        if report and spec.analysis is None:
             studies.write_results(spec, directory, studies.records_for_report(spec, directory))
-        else:
+        else:  # an analysis reports by running: from the committed points (if none here), it measures nothing new
+            if report and studies.seed_points(spec, directory):
+                _stderr.print(f"reporting the committed {studies.data_path(spec)}", markup=False, highlight=False)
             directory = studies.run_study(spec, study_dir, progress=not no_progress)
         if docs:
             _stderr.print(f"wrote {studies.publish(spec, directory)}", markup=False, highlight=False)

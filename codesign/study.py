@@ -332,7 +332,8 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
     root = study_dir(study, directory)
     if study.analysis is not None:
         findings = _analysis(study.analysis)(study, root, progress)
-        (root / "section.md").write_text(_heading(study) + findings.rstrip() + "\n" + _differs(study), encoding="utf-8")
+        (root / "section.md").write_text(_heading(study) + findings.rstrip() + "\n\n" + _data_line(study) + "\n"
+                                         + _differs(study), encoding="utf-8")
         return root
     recipes = [resolve_recipe(arm_recipe(study, arm, root), default_name=arm.slug) for arm in study.arms]  # all checked first
     if study.prepare is not None:
@@ -363,6 +364,7 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
 
 
 RUNS_FILE = "runs.jsonl"  # what the table is built from: a header line, then one line per finished run
+POINTS_FILE = "points.jsonl"  # an analysis's measurements, one line per point (codesign_mpm.analyses)
 DOCS_DATA = Path("docs") / "data" / "studies"
 
 
@@ -399,9 +401,21 @@ def extract(study: Study, root: Path) -> list[dict]:
 
 
 def data_path(study: Study, repo: Path = Path(".")) -> Path:
-    """Where a study's records are committed: docs/data/studies/NAME[-SCALE].jsonl."""
+    """Where a study's records are committed: docs/data/studies/NAME[-SCALE].jsonl (an analysis's
+    points: NAME[-SCALE].points.jsonl)."""
     suffix = "" if study.scale == SCALE_DEFAULT else f"-{study.scale}"
-    return repo / DOCS_DATA / f"{study.name}{suffix}.jsonl"
+    return repo / DOCS_DATA / f"{study.name}{suffix}{'.points' if study.analysis else ''}.jsonl"
+
+
+def seed_points(study: Study, root: Path) -> bool:
+    """For `--report` of an analysis: the committed points copied into `root` when it has none, so
+    that running it measures nothing they hold. Whether they were."""
+    committed = data_path(study)
+    if (root / POINTS_FILE).is_file() or not committed.is_file():
+        return False
+    root.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(committed, root / POINTS_FILE)
+    return True
 
 
 def write_records(study: Study, records: list[dict], path: Path) -> None:
@@ -544,6 +558,14 @@ def _differs(study: Study) -> str:
     return f"\nWhat differs from the paper: {study.differs}\n" if study.differs else ""
 
 
+def _data_line(study: Study) -> str:
+    scale = "" if study.scale == SCALE_DEFAULT else f" --scale {study.scale}"
+    data = data_path(study, Path(".")).relative_to(DOCS_PAGE.parent).as_posix()
+    what = "one line per measured point" if study.analysis else "one line per run (every iteration's return)"
+    return (f"Data: [{data}]({data}), {what}; `codesign study {study.name}{scale} --report --docs` rebuilds this "
+            f"section from it.")
+
+
 def section(study: Study, rows: list[Row]) -> str:
     parts = [table_markdown(rows), verdict(rows), f"![{study.name}]({study.name}.png)"]
     runs = sum(len(r.per_step) for r in rows)
@@ -551,10 +573,7 @@ def section(study: Study, rows: list[Row]) -> str:
     if runs < planned:
         parts.insert(0, f"**Under way**: {runs} of {planned} runs finished "
                         f"({len(rows)} of {len(study.arms)} arms have at least one).")
-    scale = "" if study.scale == SCALE_DEFAULT else f" --scale {study.scale}"
-    data = data_path(study, Path(".")).relative_to(DOCS_PAGE.parent).as_posix()
-    parts.append(f"Data: [{data}]({data}), one line per run (every iteration's return); "
-                 f"`codesign study {study.name}{scale} --report --docs` rebuilds this section from it.")
+    parts.append(_data_line(study))
     body = "\n\n".join(parts)
     return _heading(study) + body + "\n" + _differs(study)
 
@@ -605,9 +624,10 @@ def publish(study: Study, root: Path, repo: Path = Path(".")) -> Path:
     charts = sorted(root.glob(f"{study.name}*.png"))  # the study's charts, as its section names them
     for chart in charts:
         shutil.copyfile(chart, images / chart.name)
-    if (root / RUNS_FILE).is_file():
+    data = root / (POINTS_FILE if study.analysis else RUNS_FILE)
+    if data.is_file():
         data_path(study, repo).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(root / RUNS_FILE, data_path(study, repo))
+        shutil.copyfile(data, data_path(study, repo))
     text = docs_links((root / "section.md").read_text(encoding="utf-8"), [c.name for c in charts])
     begin, end = f"<!-- study:{study.name} -->", f"<!-- /study:{study.name} -->"
     page = repo / DOCS_PAGE

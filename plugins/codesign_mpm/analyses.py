@@ -178,15 +178,17 @@ def loss_landscape(study, root: Path, progress: bool = True) -> str:
 
 
 def muscle_ambiguity(study, root: Path, progress: bool = True) -> str:
-    """Can control make up for stiffness, or for where the muscles are? A target robot acts a random
-    gait: the workspace with every particle's stiffness times m (for each multiplier m), or with its
-    muscles placed at random (each cell of a `voxels` grid given to a random actuator). The robot of
-    the original stiffness and muscles then fits its actions (trajectory optimisation: per-step
-    actions, Adam through the differentiable simulator, on the squared distance of corresponding
-    particles, starting from the target's own actions and keeping the best iterate) to reproduce
-    the target's final frame. Reported: the earth mover's distance between
-    the two final particle sets (POT, exact), relative to the distance the target's particles
-    moved, per target and seed."""
+    """Can control make up for stiffness, or for where the muscles are? (the paper's analysis)
+
+    A target robot acts a random gait: the workspace with every particle's stiffness times m (for
+    each multiplier m), or with its muscles placed at random over `target_actuators` actuators (each
+    cell of a `voxels` grid given to one). A robot of the original stiffness, or with its own random
+    placement of k actuators (for each k of `actuators`), then fits its actions from a fresh start
+    (trajectory optimisation: per-step actions drawn anew, Adam through the differentiable simulator)
+    on the earth mover's distance between its final particles and the target's (no correspondence
+    used: POT's exact EMD, whose gradient is the optimal plan's), keeping the best iterate. Reported:
+    that EMD relative to the distance the target's particles moved (EMD of its start and end frames),
+    per target and seed."""
     import ot
     import torch
 
@@ -196,6 +198,12 @@ def muscle_ambiguity(study, root: Path, progress: bool = True) -> str:
     params = study.parameters
     env, _, full = _setup(study)
     T, K, bound = env.horizon, env.action_dim, params["bound"]
+    if max(params["actuators"] + [params["target_actuators"]]) > K:
+        raise ValueError(f"study {study.name}: parameters.actuators and target_actuators go up to "
+                         f"{max(params['actuators'] + [params['target_actuators']])}, the robot has {K} "
+                         f"(environment.robot.muscle_groups)")
+    n_robot = len(full.occupancy)  # the full workspace: no particle is dropped
+    w = torch.full((n_robot,), 1.0 / n_robot, dtype=torch.float64)
 
     def final_x(design: DesignFields, actions: np.ndarray) -> np.ndarray:
         env.reset(design=design)
@@ -203,30 +211,33 @@ def muscle_ambiguity(study, root: Path, progress: bool = True) -> str:
             env.step(action)
         return env.sim.particles_state()[0][:n_robot].astype(np.float64)
 
-    n_robot = len(full.occupancy)  # the full workspace: no particle is dropped, the rows correspond
-
-    def emd(a: np.ndarray, b: np.ndarray) -> float:
-        w = np.full(len(a), 1.0 / len(a))
-        return float(math.sqrt(ot.emd2(w, w, ot.dist(a, b))))  # the W2 distance of equal-mass particles
+    def emd(a, b):
+        """W2 distance of two equal-mass particle sets (numpy or torch, differentiable in torch)."""
+        return ot.emd2(w, w, ot.dist(a, b)) ** 0.5 if torch.is_tensor(a) else \
+            float(math.sqrt(ot.emd2(w.numpy(), w.numpy(), ot.dist(a, b))))
 
     points = env.design_space.points
     cell_id = np.unique(_voxels(env.design_space, params["voxels"]), axis=0, return_inverse=True)[1].ravel()
 
-    def target_design(kind: str, multiplier: float, rng: np.random.Generator) -> DesignFields:
-        if kind == "stiffness":
-            return DesignFields(full.occupancy, full.stiffness * multiplier, full.muscle, full.fiber)
-        owner = rng.integers(0, K, cell_id.max() + 1)[cell_id]  # one actuator per voxel
+    def placed(k: int, rng: np.random.Generator) -> DesignFields:
+        """The workspace with each voxel's particles given to one of k actuators (of the robot's K)."""
+        owner = rng.integers(0, k, cell_id.max() + 1)[cell_id]
         return DesignFields(full.occupancy, full.stiffness, np.eye(K)[owner], full.fiber)
 
     def fit(key: list) -> dict:
-        kind, multiplier, seed = key
+        kind, value, seed = key
         rng = np.random.default_rng(seed)
-        signal = rng.normal(0.0, 1.0, (T, K))
-        target_actions = bound * np.tanh(signal)
-        start = points
-        target = final_x(target_design(kind, multiplier, rng), target_actions)
-        particles, inputs = design_inputs(env, full)
-        raw = torch.tensor(signal, requires_grad=True)  # the fit starts from the target's own actions ('unfitted')
+        if kind == "stiffness":
+            target_design = DesignFields(full.occupancy, full.stiffness * value, full.muscle, full.fiber)
+            design = full
+        else:
+            target_design = placed(params["target_actuators"], rng)
+            design = placed(int(value), np.random.default_rng([seed, int(value)]))  # its own placement
+        target_actions = bound * np.tanh(rng.normal(0.0, 1.0, (T, K)))
+        target = final_x(target_design, target_actions)
+        particles, inputs = design_inputs(env, design)
+        fresh = np.random.default_rng([seed, 1_000 + int(1_000 * value)]).normal(0.0, 1.0, (T, K))
+        raw = torch.tensor(fresh, requires_grad=True)  # a fresh controller, not the target's actions
         adam = torch.optim.Adam([raw], lr=params["lr"])
         goal = torch.as_tensor(target)
         best = (math.inf, raw.detach().clone())  # the fit keeps its best iterate (Adam's steps do not shrink)
@@ -235,51 +246,69 @@ def muscle_ambiguity(study, root: Path, progress: bool = True) -> str:
             sim = env.grad_simulator(particles)  # back to the design's initial state
             x = simulate(sim, bound * torch.tanh(raw), volume=inputs[0], youngs_modulus=inputs[1],
                          muscle=inputs[2], fiber=inputs[3])[2][:n_robot]
-            loss = ((x - goal) ** 2).sum(1).mean()
+            loss = emd(x, goal)
             if loss.item() < best[0]:
                 best = (loss.item(), raw.detach().clone())
             loss.backward()
             adam.step()
-        fitted = final_x(full, (bound * torch.tanh(best[1])).numpy())
-        moved = emd(start, target)
-        return {"emd": emd(fitted, target), "moved": moved, "unfitted": emd(final_x(full, target_actions), target)}
+        fitted = final_x(design, (bound * torch.tanh(best[1])).numpy())
+        return {"emd": emd(fitted, target), "moved": emd(points, target),
+                "unfitted": emd(final_x(design, bound * np.tanh(fresh)), target)}
 
     keys = [["stiffness", float(m), s] for m in params["multipliers"] for s in range(params["seeds"])]
-    keys += [["placement", 1.0, s] for s in range(params["seeds"])]
+    keys += [["placement", float(k), s] for k in params["actuators"] for s in range(params["seeds"])]
     try:
         measured = _measure(root, keys, fit, progress, "fit")
     finally:
         env.close()
-    targets = list(dict.fromkeys((p["key"][0], p["key"][1]) for p in measured))
-    by_target = {t: [p for p in measured if (p["key"][0], p["key"][1]) == t] for t in targets}
-    names = [f"x{m:g}" if kind == "stiffness" else "random muscles" for kind, m in targets]
 
     def relative(p: dict, what: str) -> float:
         return p[what] / p["moved"] if p["moved"] > 0 else float("nan")
 
-    def values(t, what: str) -> list[float]:
-        return [relative(p, what) for p in by_target[t]]
+    def by(kind: str) -> dict[float, list[dict]]:
+        groups: dict[float, list[dict]] = {}
+        for p in measured:
+            if p["key"][0] == kind:
+                groups.setdefault(p["key"][1], []).append(p)
+        return groups
 
-    def draw(ax) -> None:
-        ax.boxplot([values(t, "emd") for t in targets])
-        ax.set_xticks(range(1, len(targets) + 1), names)
-        ax.plot(range(1, len(targets) + 1), [np.mean(values(t, "unfitted")) for t in targets], color="tab:gray",
-                linestyle="--", marker="x", label="target's own actions, not fitted")
-        ax.set_xlabel("target robot: stiffness multiplier, or random muscle placement")
+    def band(ax, groups: dict[float, list[dict]], xlabel: str) -> None:
+        xs = list(groups)
+        for what, colour, label in (("emd", "tab:blue", "fitted"), ("unfitted", "tab:gray", "fresh start, not fitted")):
+            v = np.array([[relative(p, what) for p in groups[x]] for x in xs])
+            mean, std = v.mean(1), v.std(1, ddof=1) if v.shape[1] > 1 else np.zeros(len(xs))
+            ax.plot(xs, mean, marker="o", color=colour, label=label)
+            ax.fill_between(xs, mean - std, mean + std, color=colour, alpha=0.2)
+        ax.set_xlabel(xlabel)
         ax.set_ylabel("EMD of final frames / target's motion")
         ax.legend(fontsize=8)
 
-    _plot(root / f"{study.name}.png", "fitting control to another body", draw)
+    stiffness, placement = by("stiffness"), by("placement")
+    _plot(root / f"{study.name}.png", "fitting control to other stiffness",
+          lambda ax: band(ax, stiffness, "target's stiffness multiplier"))
+    _plot(root / f"{study.name}_placement.png",
+          f"fitting control to another muscle placement ({params['target_actuators']} actuators)",
+          lambda ax: band(ax, placement, "actuators of the fitted robot"))
 
     def spread(v: list[float]) -> str:
         return f"{np.std(v, ddof=1):.3f}" if len(v) > 1 else "-"
 
-    rows = "\n".join(f"| {name} | {np.mean(values(t, 'emd')):.3f} | {spread(values(t, 'emd'))} | "
-                     f"{np.mean(values(t, 'unfitted')):.3f} | {len(by_target[t])} |" for name, t in zip(names, targets))
+    def table(groups: dict[float, list[dict]], name: Callable[[float], str], header: str) -> str:
+        rows = [f"| {name(x)} | {np.mean([relative(p, 'emd') for p in ps]):.3f} | "
+                f"{spread([relative(p, 'emd') for p in ps])} | {np.mean([relative(p, 'unfitted') for p in ps]):.3f} | "
+                f"{len(ps)} |" for x, ps in groups.items()]
+        return f"| {header} | fitted: mean | std | fresh start: mean | seeds |\n| --- | --- | --- | --- | --- |\n" + \
+            "\n".join(rows)
+
     return "\n\n".join([
         "Relative matching error: the earth mover's distance between the fitted robot's and the target's final "
-        "particles, divided by how far the target's particles moved from the start (EMD of start and end). "
-        "'Unfitted' replays the target's own actions on the original robot, the error before fitting:",
-        "| target | fitted: mean | std | unfitted: mean | seeds |\n| --- | --- | --- | --- | --- |\n" + rows,
+        "particles, divided by how far the target's particles moved from the start (EMD of its start and end). "
+        "'Fresh start' plays the fit's starting actions, the error before fitting.",
+        "Stiffness: the original robot fits a target whose every particle is m times as stiff.",
+        table(stiffness, lambda m: f"x{m:g}", "target stiffness"),
         f"![ambiguity]({study.name}.png)",
+        f"Muscle placement: a robot with k actuators placed at random fits a target with "
+        f"{params['target_actuators']} placed at random (its own placement, per seed).",
+        table(placement, lambda k: f"{k:g}", "actuators"),
+        f"![placement]({study.name}_placement.png)",
     ])
