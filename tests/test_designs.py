@@ -90,3 +90,21 @@ def test_inverted_stiffness_ratios_are_a_user_error():
 def test_shipped_recipes_validate(recipe):
     resolved = load_recipe(recipe)
     assert resolved.sections["environment"].name in ("ground", "ice", "ocean")
+
+
+@pytest.mark.parametrize("kind", ["particle", "voxel"])
+def test_uniform_muscles_start_every_particle_in_every_muscle_alike_and_still_learn_placement(kind):
+    """`muscle_init: uniform` (the released SoftZoo's start for Table 2): softmax of equal logits is
+    1/K everywhere, and a loss that weighs the muscles differently still moves every logit."""
+    from codesign_designs.config import VoxelConfig
+    from codesign_designs.voxel import VoxelRepresentation
+
+    space = DesignSpace(points=box_points(), n_actuators=4, default_stiffness=2e4)
+    representation = (ParticleRepresentation(ParticleConfig(muscle_init="uniform")) if kind == "particle"
+                      else VoxelRepresentation(VoxelConfig(muscle_init="uniform", resolution=4)))
+    representation.setup(space, np.random.default_rng(0))
+    design = representation()
+    torch.testing.assert_close(design.muscle, torch.full_like(design.muscle, 0.25))
+    weights = torch.rand(len(box_points()), 4, generator=torch.Generator().manual_seed(0))
+    (design.muscle * weights).sum().backward()
+    assert representation.muscle.grad.abs().min() > 0

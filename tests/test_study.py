@@ -326,3 +326,20 @@ def test_each_section_in_the_docs_is_what_its_committed_records_rebuild(path, mo
     assert data_path(study) == path.relative_to(REPO)
     text = docs_links(section(study, rows_from(study, records)), [f"{study.name}.png"])
     assert published_section(REPO / DOCS_PAGE, study.name) == text
+
+
+def test_an_analysis_reports_from_its_committed_points_where_its_directory_has_none(tmp_path, monkeypatch):
+    """An analysis's section is rebuilt by running it on its points: from a fresh clone, the
+    committed ones (docs/data/studies/NAME.points.jsonl), so it measures nothing they hold."""
+    from codesign.study import POINTS_FILE, seed_points
+
+    study = load_study("muscle_ambiguity")
+    monkeypatch.chdir(tmp_path)
+    assert data_path(study) == DOCS_DATA / "muscle_ambiguity.points.jsonl"
+    assert not seed_points(study, tmp_path / "run")  # nothing committed: nothing to copy
+    data_path(study).parent.mkdir(parents=True)
+    data_path(study).write_text('{"key": ["stiffness", 2.0, 0], "emd": 1.0}\n')
+    assert seed_points(study, tmp_path / "run")
+    assert (tmp_path / "run" / POINTS_FILE).read_text() == data_path(study).read_text()
+    (tmp_path / "run" / POINTS_FILE).write_text("{}\n")  # points of its own are kept
+    assert not seed_points(study, tmp_path / "run") and (tmp_path / "run" / POINTS_FILE).read_text() == "{}\n"
