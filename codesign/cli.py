@@ -159,6 +159,32 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
         typer.echo(f"mean return {sum(returns) / len(returns):.6g} over {len(returns)} episode(s)")
 
     @app.command()
+    def view(
+        sources: list[Path] = typer.Argument(..., metavar="SOURCE", help="Run directories, sweep or study directories (each run's "
+                                             "best), .npz exports of `codesign simulate --export`, designs "
+                                             "(a run's best/design.npz) or annotated bodies (`codesign annotate`)."),
+        iterations: str = typer.Option("best", "--iterations", help="Each run's episodes, comma-separated: best "
+                                       "and/or 0 (the design and controller it started from), e.g. 0,best."),
+        out: Optional[Path] = typer.Option(None, "--out", help="The recording, FILE.rrd (default: RUN_DIR/view.rrd, "
+                                           "FILE.rrd beside a file, ./view.rrd for several sources)."),
+        serve: bool = typer.Option(False, "--serve", help="Then serve it to a web browser on this machine "
+                                   "(http://localhost:PORT) until Ctrl-C."),
+        port: int = typer.Option(9090, "--port", min=1, max=65535, help="The web viewer's port with --serve."),
+    ) -> None:
+        """Write an interactive 3D recording of episodes or designs, print its path and how to open it."""
+        wanted = [part.strip() for part in iterations.split(",") if part.strip()]
+        if not wanted:
+            raise CodesignError(f"--iterations {iterations!r}: name at least one of best, 0 (e.g. 0,best)")
+        recording = plugin_manager.hook.codesign_view(sources=list(sources), iterations=wanted, out=out)
+        if recording is None:
+            raise CodesignError(f"no plugin can view {', '.join(map(str, sources))} (codesign_mpm views its own "
+                                "environments' runs, exports and designs)")
+        typer.echo(str(recording.path))
+        _stderr.print(recording.how_to_open, markup=False, highlight=False, soft_wrap=True)
+        if serve:
+            recording.serve(port)
+
+    @app.command()
     def show(
         recipe: str = typer.Argument(..., help="Recipe file, or a name in recipes/."),
         overrides: Optional[list[str]] = typer.Argument(None, help="key=value overrides, e.g. seed=3."),

@@ -7,13 +7,14 @@ may be left out of an implementation's signature if it does not need them.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import pluggy
 
 if TYPE_CHECKING:
-    from pathlib import Path
-
     import typer
 
     from codesign.registry import PluginRegistrar
@@ -64,4 +65,28 @@ def codesign_render_run(run_dir: Path, camera: str, fps: int, progress: bool) ->
 
     Called by the runner at the end of a run whose recipe says ``render.enabled: true``. Return
     None when this plugin cannot render the run's environment; the first path returned wins.
+    """
+
+
+@dataclass
+class ViewRecording:
+    """What a plugin's `codesign_view` wrote: a recording that opens later, on this machine or another."""
+
+    path: Path
+    """The recording file."""
+    how_to_open: str
+    """Lines telling a user how to open it (the viewer and its commands)."""
+    serve: Callable[[int], None]
+    """Serve it to a web browser on this local port, blocking until interrupted (`codesign view --serve`)."""
+
+
+@hookspec(firstresult=True)
+def codesign_view(sources: list[Path], iterations: list[str], out: Path | None) -> ViewRecording | None:
+    """Write an interactive 3D recording of ``sources`` for `codesign view`; return what was written.
+
+    ``sources`` are what the user named: run directories (each replayed at ``iterations``, e.g.
+    ``["0", "best"]``), directories of runs (a sweep or a study: each run's best), or files a plugin
+    knows (an episode export, a design). ``out`` is the recording's path (None: the plugin's
+    default). Return None when this plugin cannot view them, so another can; raise
+    `codesign.errors.CodesignError` naming the bad input when it can but the input is wrong.
     """

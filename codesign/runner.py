@@ -35,7 +35,7 @@ from omegaconf import OmegaConf
 
 from codesign.artifacts import load_best_info
 from codesign.errors import CodesignError
-from codesign.interfaces import Controller, Environment, Optimizer, Representation
+from codesign.interfaces import Controller, DesignFields, Environment, Optimizer, Representation
 from codesign.plots import CURVE_FILE, learning_curve
 from codesign.progress import progress_bar
 from codesign.plugins import get_plugin_manager, get_registry
@@ -259,6 +259,28 @@ def best_parts(run_dir: str | Path, overrides: dict | None = None
                                 "settings that keep its sampling (e.g. environment.cfl, not environment.dx)")
         load_controller(Path(run_dir), parts.controller)
         yield parts, design, rng
+    finally:
+        parts.environment.close()
+
+
+@contextmanager
+def start_parts(run_dir: str | Path) -> Iterator[tuple[Parts, DesignFields, np.random.Generator]]:
+    """The run's parts rebuilt from its config and set up from its seed as the run set them up
+    before its first update (with its `init_controller`, if any): yields (parts, the design they
+    start from, the run's generator), iteration 0's design and controller, and closes the
+    environment. A run keeps no later iteration's parameters, only its best (`best_parts`)."""
+    from codesign.artifacts import load_controller
+
+    _, recipe = load_run_data(run_dir)
+    parts = build_parts(recipe)
+    try:
+        rng = seed_everything(recipe.seed)
+        env = parts.environment
+        parts.representation.setup(env.design_space, rng)
+        parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
+        if recipe.settings.init_controller is not None:
+            load_controller(Path(recipe.settings.init_controller), parts.controller)
+        yield parts, parts.representation(), rng
     finally:
         parts.environment.close()
 

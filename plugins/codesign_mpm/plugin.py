@@ -16,6 +16,8 @@ from codesign_mpm.config import PRESET_CONFIGS, PRESETS, LocomotionConfig
 if TYPE_CHECKING:
     import typer
 
+    from codesign.hookspecs import ViewRecording
+
     from codesign_mpm.env import LocomotionEnv
 
 
@@ -56,6 +58,23 @@ def codesign_render_run(run_dir: Path, camera: str, fps: int, progress: bool) ->
     from codesign_mpm.render import render as render_files
 
     return render_files(run_dir, camera=camera, fps=fps, progress=progress)[0]
+
+
+@hookimpl
+def codesign_view(sources: list[Path], iterations: list[str], out: Path | None) -> ViewRecording | None:
+    """`codesign view`: MPM runs (their environment a preset here), sweeps or studies of them, exports
+    of `codesign simulate` and designs, as a Rerun recording (codesign_mpm.view)."""
+    from codesign.runner import load_run_data
+    from codesign_mpm.view import is_run, runs_under
+
+    for source in sources:
+        runs = ([source] if is_run(source) else runs_under(source)) if source.is_dir() else []
+        for run in runs:
+            if load_run_data(run)[1].sections["environment"].name not in PRESETS:
+                return None
+    from codesign_mpm.view import view
+
+    return view(sources, iterations, out)
 
 
 @hookimpl

@@ -78,25 +78,35 @@ class Recording:
     heights: np.ndarray | None  # (nx, nz) terrain height on grid nodes; None: no terrain
     mass: np.ndarray | None = None  # (N,) particle mass (volume x density); None: unknown, pieces count particles
     body: np.ndarray | None = None  # (N,) index of the particle's body in the scene; None: one robot body
+    rewards: np.ndarray | None = None  # (F,) the task's reward of each control step; None: not recorded (an export)
+    target: dict[str, np.ndarray] | None = None  # the task's target (`task_target`); None: unknown
 
     @property
     def frames(self) -> int:
         return len(self.x) - 1
 
-    def torn(self, frame: int) -> np.ndarray:
-        """(N,) robot particles torn off their body at `frame`: outside the body's largest piece (by
-        mass where `mass` is known, else by count) of particles whose stencils share grid nodes
+    def piece_labels(self, frame: int) -> np.ndarray:
+        """(N,) which piece of its body each robot particle is in at `frame`: 0 the body's largest
+        piece (by mass where `mass` is known, else by count), 1, 2, ... the pieces torn off it, by
+        size; -1 off the robot. Pieces are particles whose stencils share grid nodes
         (`codesign_mpm.integrity.pieces` at the recording's dx)."""
         from codesign_mpm.integrity import pieces
 
-        torn = np.zeros(len(self.material), dtype=bool)
+        labels = np.full(len(self.material), -1, dtype=np.int64)
         body = self.body if self.body is not None else np.zeros(len(self.material), dtype=np.int64)
         for b in np.unique(body[self.robot]):
             members = np.flatnonzero(self.robot & (body == b))
             label = pieces(self.x[frame][members], self.dx)
             size = np.bincount(label, weights=None if self.mass is None else self.mass[members])
-            torn[members] = label != size.argmax()
-        return torn
+            rank = np.empty(len(size), dtype=np.int64)
+            rank[np.argsort(-size, kind="stable")] = np.arange(len(size))
+            labels[members] = rank[label]
+        return labels
+
+    def torn(self, frame: int) -> np.ndarray:
+        """(N,) robot particles torn off their body at `frame`: outside the body's largest piece
+        (`piece_labels`)."""
+        return self.piece_labels(frame) > 0
 
     def torn_fraction(self, torn: np.ndarray) -> float:
         """The share of the robot's mass (of its particles, without masses) that `torn` marks."""
@@ -148,6 +158,7 @@ def record_episode(env: LocomotionEnv, design: DesignFields | None, controller: 
         raise CodesignError(f"rendering needs an MPM locomotion environment (codesign_mpm), "
                             f"not a {type(env).__name__}")
     steps = env.horizon if steps is None else steps
+    rewards: list[float] = []
     if steps == 0:
         particles = env.design_particles(design) if design is not None else env.particles
         xs, actions = [particles.x.astype(np.float32)], []
@@ -161,6 +172,7 @@ def record_episode(env: LocomotionEnv, design: DesignFields | None, controller: 
                 action = to_numpy(controller(observation, t))
                 result = env.step(action)
                 actions.append(action)
+                rewards.append(float(result.reward))
                 xs.append(env.sim.particles_state()[0].astype(np.float32))
                 observation = result.observation
                 if result.done:
@@ -169,14 +181,37 @@ def record_episode(env: LocomotionEnv, design: DesignFields | None, controller: 
     heights = height_map(env.scene) if env.scene.terrain.kind != "none" else None
     return Recording(np.stack(xs), np.array(actions).reshape(len(actions), k), particles.material.copy(),
                      particles.robot.copy(), particles.muscle.copy(), env.control_dt, env.scene.dx, heights,
-                     mass=particles.volume * particles.density, body=particles.body.copy())
+                     mass=particles.volume * particles.density, body=particles.body.copy(),
+                     rewards=np.array(rewards), target=task_target(env.task, env.control_dt, env.horizon))
 
 
-def record_run(run_dir: str | Path, steps: int | None = None) -> Recording:
-    """Record one episode of a run's best design and controller (its parts rebuilt from config.yaml)."""
+def task_target(task: object, control_dt: float, horizon: int) -> dict[str, np.ndarray]:
+    """What a viewer can draw of a started task (`codesign_mpm.tasks`): its unit `direction` to move
+    along, the `up` axis to turn about, or the path's `waypoints` at the end of each control step;
+    empty for a task that has none of these."""
+    if hasattr(task, "position") and hasattr(task, "coefficients"):
+        return {"waypoints": np.stack([task.position((t + 1) * control_dt) for t in range(horizon)])}
+    for key in ("direction", "up"):
+        if hasattr(task, key):
+            return {key: np.asarray(getattr(task, key), dtype=np.float64)}
+    return {}
+
+
+ITERATIONS = ("best", "0")
+"""The episodes a run can replay: its best design and controller (best/), or those it started from
+(iteration 0: the representation and controller set up from the run's seed, before any update)."""
+
+
+def record_run(run_dir: str | Path, steps: int | None = None, iteration: str = "best") -> Recording:
+    """Record one episode of a run's best design and controller, or (``iteration="0"``) of those it
+    started from; its parts are rebuilt from config.yaml."""
     from codesign import runner
 
-    with runner.best_parts(run_dir) as (parts, design, _):
+    if iteration not in ITERATIONS:
+        raise CodesignError(f"iteration {iteration!r} of {run_dir} is not kept: a run keeps its start (0) and its "
+                            f"best (best); choose from {', '.join(ITERATIONS)}")
+    parts_of = runner.best_parts if iteration == "best" else runner.start_parts
+    with parts_of(run_dir) as (parts, design, _):
         return record_episode(parts.environment, design, parts.controller, steps)  # type: ignore[arg-type]
 
 
@@ -304,14 +339,19 @@ def view_box(rec: Recording) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def particle_colors(rec: Recording, frame: int, scale: float) -> np.ndarray:
-    """Cover by material kind; the robot grey, turning red (a > 0) or blue (a < 0) with |a| / scale."""
+def material_colors(material: np.ndarray) -> np.ndarray:
+    """(N, 3) each particle's colour by its material kind (`MATERIAL_COLORS`; grey for a plugin's)."""
     from codesign_mpm.materials import MATERIALS
 
     table = np.tile(PASSIVE, (max(m.id for m in MATERIALS.values()) + 1, 1))
     for name, color in MATERIAL_COLORS.items():
         table[MATERIALS[name].id] = color
-    colors = table[np.clip(rec.material, 0, len(table) - 1)]
+    return table[np.clip(material, 0, len(table) - 1)]
+
+
+def particle_colors(rec: Recording, frame: int, scale: float) -> np.ndarray:
+    """Cover by material kind; the robot grey, turning red (a > 0) or blue (a < 0) with |a| / scale."""
+    colors = material_colors(rec.material)
     a = rec.activation(frame)[rec.robot]
     t = np.clip(np.abs(a) / scale, 0, 1)[:, None] if scale > 0 else np.zeros((len(a), 1))
     colors[rec.robot] = PASSIVE * (1 - t) + np.where(a[:, None] > 0, CONTRACT, EXTEND) * t
@@ -339,6 +379,12 @@ def group_colors(rec: Recording) -> np.ndarray:
     return colors
 
 
+def activation_scale(rec: Recording) -> float:
+    """The largest |a| of a robot particle over the episode: `particle_colors` saturates there."""
+    activations = [np.abs(rec.activation(f)[rec.robot]) for f in range(1, rec.frames + 1)]
+    return float(max((a.max() for a in activations if a.size), default=0.0))
+
+
 class Renderer:
     """Frames of one recording from one camera; matplotlib adds the text over each."""
 
@@ -354,8 +400,7 @@ class Renderer:
         from codesign_mpm.materials import MATERIALS
 
         self.veiled = np.isin(rec.material, [MATERIALS[name].id for name in VEILED])
-        activations = [np.abs(rec.activation(f)[rec.robot]) for f in range(1, rec.frames + 1)]
-        self.scale = float(max((a.max() for a in activations if a.size), default=0.0))
+        self.scale = activation_scale(rec)
         self.figure = Figure(figsize=(size[0] / 100, size[1] / 100), dpi=100)
         FigureCanvasAgg(self.figure)  # Agg whatever the default backend: no display needed
         ax = self.figure.add_axes((0, 0, 1, 1))
