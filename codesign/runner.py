@@ -234,13 +234,10 @@ def load_run_data(run_dir: str | Path) -> tuple[dict, ResolvedRecipe]:
 
 
 @contextmanager
-def best_parts(run_dir: str | Path, overrides: dict | None = None
-               ) -> Iterator[tuple[Parts, Any, np.random.Generator]]:
-    """The run's parts rebuilt from its config (with `overrides` merged in, e.g.
-    {"environment": {"cfl": 0.1}}), set up as the run set them up, holding its best controller;
-    yields (parts, best design, the run's generator) and closes the environment."""
-    from codesign.artifacts import load_controller, load_design
-
+def _set_up_parts(run_dir: str | Path, overrides: dict | None = None
+                  ) -> Iterator[tuple[Parts, ResolvedRecipe, np.random.Generator]]:
+    """The run's parts rebuilt from its config (with `overrides` merged in) and set up from its seed
+    as the run set them up; yields (parts, recipe, the run's generator) and closes the environment."""
     data, recipe = load_run_data(run_dir)
     if overrides:
         recipe = resolve_recipe(OmegaConf.to_container(OmegaConf.merge(OmegaConf.create(data),
@@ -251,6 +248,21 @@ def best_parts(run_dir: str | Path, overrides: dict | None = None
         env = parts.environment
         parts.representation.setup(env.design_space, rng)
         parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
+        yield parts, recipe, rng
+    finally:
+        parts.environment.close()
+
+
+@contextmanager
+def best_parts(run_dir: str | Path, overrides: dict | None = None
+               ) -> Iterator[tuple[Parts, Any, np.random.Generator]]:
+    """The run's parts rebuilt from its config (with `overrides` merged in, e.g.
+    {"environment": {"cfl": 0.1}}), set up as the run set them up, holding its best controller;
+    yields (parts, best design, the run's generator) and closes the environment."""
+    from codesign.artifacts import load_controller, load_design
+
+    with _set_up_parts(run_dir, overrides) as (parts, _, rng):
+        env = parts.environment
         design = load_design(Path(run_dir))
         if len(design.occupancy) != len(env.design_space.points):
             raise CodesignError(f"{run_dir}: its best design has {len(design.occupancy)} particles, the environment "
@@ -259,30 +271,20 @@ def best_parts(run_dir: str | Path, overrides: dict | None = None
                                 "settings that keep its sampling (e.g. environment.cfl, not environment.dx)")
         load_controller(Path(run_dir), parts.controller)
         yield parts, design, rng
-    finally:
-        parts.environment.close()
 
 
 @contextmanager
 def start_parts(run_dir: str | Path) -> Iterator[tuple[Parts, DesignFields, np.random.Generator]]:
-    """The run's parts rebuilt from its config and set up from its seed as the run set them up
-    before its first update (with its `init_controller`, if any): yields (parts, the design they
-    start from, the run's generator), iteration 0's design and controller, and closes the
-    environment. A run keeps no later iteration's parameters, only its best (`best_parts`)."""
+    """Iteration 0's design and controller: the run's parts set up from its seed before its first
+    update (with its `init_controller`, if any); yields (parts, the design they start from, the
+    run's generator) and closes the environment. A run keeps no later iteration's parameters, only
+    its best (`best_parts`)."""
     from codesign.artifacts import load_controller
 
-    _, recipe = load_run_data(run_dir)
-    parts = build_parts(recipe)
-    try:
-        rng = seed_everything(recipe.seed)
-        env = parts.environment
-        parts.representation.setup(env.design_space, rng)
-        parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
+    with _set_up_parts(run_dir) as (parts, recipe, rng):
         if recipe.settings.init_controller is not None:
             load_controller(Path(recipe.settings.init_controller), parts.controller)
         yield parts, parts.representation(), rng
-    finally:
-        parts.environment.close()
 
 
 def replay_best(run_dir: str | Path, episodes: int = 1, overrides: dict | None = None) -> list[EpisodeRecord]:

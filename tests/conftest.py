@@ -52,6 +52,27 @@ def toy_recipe() -> dict:
     return copy.deepcopy(TOY_RECIPE)
 
 
+TINY_MPM_HORIZON = 5
+TINY_MPM_RECIPE = {
+    "name": "tiny-mpm", "seed": 0,
+    "environment": {"name": "ground", "dx": 1 / 24, "horizon": TINY_MPM_HORIZON, "terrain": {"height": 0.13}},
+    "representation": {"name": "particle"},
+    "controller": {"name": "sine"},
+    "optimizer": {"name": "cma_es", "generations": 1, "population": 2},
+}
+"""A real MPM run in seconds: a small box on ground, 5 control steps, one CMA-ES generation of 2."""
+
+
+@pytest.fixture(scope="module")
+def tiny_mpm_run(tmp_path_factory):
+    """A finished run of TINY_MPM_RECIPE, with a best/ design and controller (about 10 s)."""
+    from codesign import runner
+    from codesign.recipe import resolve_recipe
+
+    return runner.run(resolve_recipe(copy.deepcopy(TINY_MPM_RECIPE)), run_dir=tmp_path_factory.mktemp("tiny") / "run",
+                      progress=False)
+
+
 @pytest.fixture
 def wandb_offline(tmp_path, monkeypatch):
     """W&B in offline mode, quiet, with its config, cache and data kept inside the test's tmp_path."""

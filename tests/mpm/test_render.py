@@ -8,6 +8,7 @@ import sys
 import imageio.v2 as imageio
 import numpy as np
 import pytest
+from conftest import TINY_MPM_HORIZON, TINY_MPM_RECIPE
 
 from codesign import plugins, runner
 from codesign.artifacts import PALETTE
@@ -16,20 +17,13 @@ from codesign_mpm.render import TORN, Recording, Renderer, episode_colors, recor
 from codesign_mpm.scene import BodySpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec
 from codesign_mpm.simulate import simulate
 
-HORIZON = 5
-TINY = {
-    "name": "tiny-render", "seed": 0,
-    "environment": {"name": "ground", "dx": 1 / 24, "horizon": HORIZON, "terrain": {"height": 0.13}},
-    "representation": {"name": "particle"},
-    "controller": {"name": "sine"},
-    "optimizer": {"name": "cma_es", "generations": 1, "population": 2},
-}
+HORIZON = TINY_MPM_HORIZON
+TINY = TINY_MPM_RECIPE
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-    """A real run with a best/ design and controller (about 10 s)."""
-    return runner.run(resolve_recipe(TINY), run_dir=tmp_path_factory.mktemp("render") / "run", progress=False)
+def run_dir(tiny_mpm_run):
+    return tiny_mpm_run
 
 
 def frames_of(path) -> list[np.ndarray]:
