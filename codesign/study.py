@@ -583,7 +583,7 @@ def records_for_report(study: Study, root: Path) -> list[dict]:
     (docs/data/studies/), so a fresh clone rebuilds the docs' tables from data alone."""
     records = extract(study, root) if root.is_dir() else []
     if not any("best" in r for r in records) and data_path(study).is_file():
-        header, records = read_records(data_path(study))
+        _, records = read_records(data_path(study))
         print(f"[{study.name}] no finished runs in {root}: reporting the committed {data_path(study)}",
               file=sys.stderr, flush=True)
     return records
