@@ -11,7 +11,10 @@ import copy
 from dataclasses import dataclass, field, make_dataclass
 from typing import Any, Optional
 
+import numpy as np
+
 from codesign.bodies import BODY_FILE_SUFFIXES, LIBRARY_BODIES
+from codesign.errors import RecipeError
 from codesign_mpm.quality import QUALITY_NAMES, quality
 
 ROBOT_BODIES = ("box", "ellipsoid", *LIBRARY_BODIES, "file")
@@ -257,6 +260,7 @@ class LocomotionConfig:
             self.robot.particles_per_cell = q.particles_per_cell
         if self.cover is not None and self.cover.particles_per_cell is None:
             self.cover.particles_per_cell = q.cover_particles_per_cell
+        check_config(self)
 
     def resolved_cover(self, preset: EnvironmentPreset) -> CoverConfig:
         """The cover to lay: this config's, else the preset's, with particles per cell resolved."""
@@ -278,3 +282,35 @@ def _preset_config(name: str, preset: EnvironmentPreset) -> type:
 
 
 PRESET_CONFIGS: dict[str, type] = {name: _preset_config(name, preset) for name, preset in PRESETS.items()}
+
+
+def _problem(key: str, message: str) -> RecipeError:
+    return RecipeError(f"invalid recipe: environment.{key}: {message}")
+
+
+def check_config(config: LocomotionConfig) -> None:
+    """Cross-field checks the field metadata cannot express (lengths, the wall band at the preset's
+    dx, the muscles' strength, zero vectors): run when a recipe is read, so nothing is built first."""
+    for key, value, n in (("size", config.size, 3), ("robot.size", config.robot.size, 3),
+                          ("robot.position", config.robot.position, 2),
+                          ("robot.muscle_groups", config.robot.muscle_groups, 3),
+                          ("task.direction", config.task.direction, 3), ("task.up", config.task.up, 3),
+                          ("task.offset", config.task.offset, 3)):
+        if len(value) != n:
+            raise _problem(key, f"expected {n} numbers, got {list(value)}")
+    from codesign_mpm.admissible import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio
+    from codesign_mpm.scene import Scene
+
+    wall = Scene().boundary_cells * config.dx
+    if config.terrain.height < wall:
+        raise _problem("terrain.height", f"{config.terrain.height!r} is below the wall band; "
+                       f"must be >= 3 dx = {wall:.4g}")
+    robot, max_action = config.robot, Scene().max_action
+    if active_stress_ratio(robot.muscle_stiffness_ratio, max_action, robot.poisson_ratio) > MAX_ACTIVE_STRESS_RATIO:
+        raise _problem("robot.muscle_stiffness_ratio", (
+            f"{robot.muscle_stiffness_ratio!r} is too strong for the body: at the action bound {max_action} its "
+            f"stress would exceed {MAX_ACTIVE_STRESS_RATIO} x the shear modulus (numerical fracture); must be <= "
+            f"{max_stiffness_ratio(max_action, robot.poisson_ratio):.4g} at poisson_ratio {robot.poisson_ratio}"))
+    for key in ("direction", "up"):
+        if not np.linalg.norm(getattr(config.task, key)) > 0:
+            raise _problem(f"task.{key}", "must be a non-zero vector")

@@ -24,11 +24,11 @@ from codesign.errors import DesignError, RecipeError
 from codesign.interfaces import Controller, DesignFields, DesignSpace, Environment, StepResult
 from codesign.registry import suggest
 from codesign_mpm.batch import BatchSimulator
-from codesign_mpm.config import CoverConfig, EnvironmentPreset, LocomotionConfig, RobotConfig, TaskConfig
+from codesign_mpm.config import (CoverConfig, EnvironmentPreset, LocomotionConfig, RobotConfig, TaskConfig, _problem,
+                                 check_config)
 from codesign_mpm.engine import Simulator
 from codesign_mpm.episode import Episode, run_episode
 from codesign_mpm.integrity import MIN_THICKNESS_CELLS, IntegrityWatch, resolved_body, thinnest_cells
-from codesign_mpm.materials import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio
 from codesign_mpm.observations import Observer
 from codesign_mpm.sampling import Particles, build_particles, layer_ground
 from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
@@ -42,34 +42,6 @@ WATER_WALL_CLEARANCE = 0.1
 """Metres of water a robot's workspace should keep from the domain's walls (docs/studies.md): a 0.3 m box
 that extends its muscles and holds still moved 12.5, 5.9, 0.5 and -1.1 mm in 0.48 s with its back 0.006,
 0.056, 0.106 and 0.206 m from the wall band (dx 1/32): it pushes the water against the wall."""
-
-
-def _problem(key: str, message: str) -> RecipeError:
-    return RecipeError(f"invalid recipe: environment.{key}: {message}")
-
-
-def _check_config(config: LocomotionConfig) -> None:
-    """Cross-field checks the field metadata cannot express (lengths, wall band, zero vectors)."""
-    for key, value, n in (("size", config.size, 3), ("robot.size", config.robot.size, 3),
-                          ("robot.position", config.robot.position, 2),
-                          ("robot.muscle_groups", config.robot.muscle_groups, 3),
-                          ("task.direction", config.task.direction, 3), ("task.up", config.task.up, 3),
-                          ("task.offset", config.task.offset, 3)):
-        if len(value) != n:
-            raise _problem(key, f"expected {n} numbers, got {list(value)}")
-    wall = Scene().boundary_cells * config.dx
-    if config.terrain.height < wall:
-        raise _problem("terrain.height", f"{config.terrain.height!r} is below the wall band; "
-                       f"must be >= 3 dx = {wall:.4g}")
-    robot, max_action = config.robot, Scene().max_action
-    if active_stress_ratio(robot.muscle_stiffness_ratio, max_action, robot.poisson_ratio) > MAX_ACTIVE_STRESS_RATIO:
-        raise _problem("robot.muscle_stiffness_ratio", (
-            f"{robot.muscle_stiffness_ratio!r} is too strong for the body: at the action bound {max_action} its "
-            f"stress would exceed {MAX_ACTIVE_STRESS_RATIO} x the shear modulus (numerical fracture); must be <= "
-            f"{max_stiffness_ratio(max_action, robot.poisson_ratio):.4g} at poisson_ratio {robot.poisson_ratio}"))
-    for key in ("direction", "up"):
-        if not np.linalg.norm(getattr(config.task, key)) > 0:
-            raise _problem(f"task.{key}", "must be a non-zero vector")
 
 
 def _warn_wall_push(config: LocomotionConfig, preset: EnvironmentPreset) -> None:
@@ -217,7 +189,7 @@ class LocomotionEnv(Environment):
     batched = True
 
     def __init__(self, config: LocomotionConfig, preset: EnvironmentPreset) -> None:
-        _check_config(config)
+        check_config(config)  # again: a config changed after it was read
         _warn_wall_push(config, preset)
         self.config = config
         self.scene = make_scene(config, preset)

@@ -135,8 +135,18 @@ def test_torch_designs_are_accepted():
     assert np.isfinite(obs).all()
 
 
-def test_terrain_inside_the_wall_band_is_rejected():
-    config = LocomotionConfig(dx=1 / 32, terrain=TerrainConfig(height=0.05))
+def test_terrain_inside_the_wall_band_is_rejected_when_the_recipe_is_read(cli):
+    """Checked before anything is built (`codesign show` refuses it), at the quality preset's dx too,
+    and again at build for a config changed after it was read."""
+    with pytest.raises(RecipeError, match=r"environment.terrain.height: 0.05 is below the wall band"):
+        LocomotionConfig(dx=1 / 32, terrain=TerrainConfig(height=0.05))
+    code, _, err = cli("show", "quickstart", "environment.quality=draft", "environment.dx=null",
+                       "environment.terrain.height=0.08")
+    assert code != 0 and "environment.terrain.height: 0.08 is below the wall band; must be >= 3 dx" in err
+    code, _, err = cli("show", "quickstart", "environment.robot.muscle_stiffness_ratio=1.0")
+    assert code != 0 and "environment.robot.muscle_stiffness_ratio: 1.0 is too strong for the body" in err
+    config = LocomotionConfig(dx=1 / 32, terrain=TerrainConfig(height=0.1))
+    config.terrain.height = 0.05
     with pytest.raises(RecipeError, match=r"environment.terrain.height: 0.05 is below the wall band"):
         LocomotionEnv(config, PRESETS["ground"])
 
