@@ -9,6 +9,7 @@ docs/contact.md section 24 reads them.
     python benchmarks/contact_steps.py runs/qs runs/cma --gait --out records.jsonl
     python benchmarks/contact_steps.py runs/qs --gait --settings "spring, pic_time" --terrain contact_stiffness=2e5
     python benchmarks/contact_steps.py --random-gaits 8 --recipe recipes/quickstart.yaml --dx 0.03125 0.0208333
+    python benchmarks/contact_steps.py --gait --shapes --dx 0.03125 0.0208333 --settings nodes "spring, pic_time"
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ from codesign.artifacts import play
 from codesign.recipe import load_recipe
 from codesign.runner import build_parts, replay_best
 from codesign_mpm import BodySpec, Scene, ShapeSpec, TerrainSpec, build_particles
-from codesign_mpm.accuracy import Setting, gait_distance
+from codesign_mpm.accuracy import Setting, gait, gait_distance, robot_env
 from codesign_mpm.engine import Simulator
 
 FACTORS = (1.0, 0.25, 0.0625)
@@ -82,12 +83,47 @@ def rebound(cfl: float, contact: str, pic_time: float | None, terrain: dict, fli
     return max(heights[lowest:]) - 0.27
 
 
+def shape_drift(dx: float, contact: str, pic_time: float | None, terrain: dict, flip: float,
+                amplitude: float = 0.3, frames: int = 125) -> dict:
+    """The travelling gait on a frictionless floor (no propulsion: what moves is the body itself):
+    how far the robot's shape (its particles about their centroid) moves from its start, and how far
+    the shapes at cfl and cfl / 4, and at cfl / 4 and cfl / 16, lie apart (RMS over particles, mm),
+    at frames 30, 60, 90 and 124; and the centroid's height at the end."""
+    shapes, heights = [], []
+    for factor in FACTORS:
+        env = robot_env("ground", Setting(dx=dx, cfl=0.4 * factor), frames, friction=0.0, contact=contact,
+                        pic_time=pic_time, flip=flip, terrain=terrain)
+        try:
+            env.reset()
+            robot = env.particles.robot
+            run = []
+            for f in range(frames):
+                env.step(gait(f, env.action_dim, amplitude=amplitude))
+                x = env.sim.particles_state()[0][:len(robot)][robot].astype(np.float64)
+                run.append(x - x.mean(0))
+            shapes.append(np.array(run))
+            heights.append(float(x.mean(0)[1]))
+        finally:
+            env.close()
+    at = [30, 60, 90, frames - 1]
+
+    def rms_mm(a: np.ndarray, b: np.ndarray) -> list[float]:
+        return [round(1e3 * float(np.sqrt(((a[i] - b[i]) ** 2).sum(1).mean())), 3) for i in at]
+
+    return {"frames": at, "shape_motion_mm": rms_mm(shapes[2], np.broadcast_to(shapes[2][0], shapes[2].shape)),
+            "apart_quarter_mm": rms_mm(shapes[0], shapes[1]), "apart_sixteenth_mm": rms_mm(shapes[1], shapes[2]),
+            "end_height_mm": [round(1e3 * h, 2) for h in heights]}
+
+
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", nargs="*", type=Path, help="run directories whose best episodes to replay")
-    parser.add_argument("--gait", action="store_true", help="also the travelling gait, stress-free and settled")
+    parser.add_argument("--gait", action="store_true", help="also the travelling gait, stress-free and settled, at "
+                                                            "each --dx")
+    parser.add_argument("--shapes", action="store_true", help="also the travelling gait's shape on a frictionless "
+                                                              "floor at each --dx (shape_drift)")
     parser.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
     parser.add_argument("--terrain", nargs="*", default=[], metavar="KEY=VALUE",
                         help="more terrain keys for every setting, e.g. contact_stiffness=2e5 contact_damping=0.3")
@@ -96,23 +132,29 @@ def main() -> None:
     parser.add_argument("--random-gaits", type=int, default=0, metavar="N", help="also N random sine gaits")
     parser.add_argument("--recipe", type=Path, default=Path("recipes/quickstart.yaml"),
                         help="whose environment and starting design the random gaits play")
-    parser.add_argument("--dx", type=float, nargs="+", default=[1 / 32], help="grids of the random gaits")
+    parser.add_argument("--dx", type=float, nargs="+", default=[1 / 32], help="grids of the gaits")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     terrain = {key: float(value) for key, value in (item.split("=", 1) for item in args.terrain)}
     flip = args.flip
     sources = [(str(run), lambda c, p, run=run: replayed(run, c, p, terrain, flip)) for run in args.runs]
     if args.gait:
-        sources += [(f"gait ({'settled' if settled else 'stress-free'})",
-                     lambda c, p, s=settled: [gait_distance(Setting(dx=1 / 32, cfl=0.4 * f), contact=c, pic_time=p,
-                                                            terrain=terrain, flip=flip, settled=s) for f in FACTORS])
-                    for settled in (False, True)]
+        sources += [(f"gait ({'settled' if settled else 'stress-free'})" + ("" if dx == 1 / 32 else f" at dx {dx:.4g}"),
+                     lambda c, p, s=settled, dx=dx: [gait_distance(Setting(dx=dx, cfl=0.4 * f), contact=c, pic_time=p,
+                                                                   terrain=terrain, flip=flip, settled=s)
+                                                     for f in FACTORS])
+                    for dx in args.dx for settled in (False, True)]
     sources += [(f"random gait {seed} at dx {dx:.4g}",
                  lambda c, p, seed=seed, dx=dx: [random_gait(args.recipe, seed, dx, 0.4 * f, c, p, terrain, flip)
                                                  for f in FACTORS])
                 for dx in args.dx for seed in range(args.random_gaits)]
     if args.ball:
         sources.append(("ball rebound", lambda c, p: [rebound(0.4 * f, c, p, terrain, flip) for f in FACTORS]))
+    if args.shapes:
+        for dx in args.dx:
+            for label in args.settings:
+                emit({"source": f"shape, frictionless, dx {dx:.4g}", "setting": label, "terrain": terrain, "flip": flip,
+                      "cfl_factors": list(FACTORS), **shape_drift(dx, *SETTINGS[label], terrain, flip)}, args.out)
     for source, measure in sources:
         for label in args.settings:
             started = time.perf_counter()
@@ -122,10 +164,14 @@ def main() -> None:
                       "quarter": (values[1] - values[0]) / abs(values[0]),
                       "sixteenth_from_quarter": (values[2] - values[1]) / abs(values[1]),
                       "seconds": round(time.perf_counter() - started, 1)}
-            print(json.dumps(record), flush=True)
-            if args.out is not None:
-                with args.out.open("a", encoding="utf-8") as f:
-                    f.write(json.dumps(record) + "\n")
+            emit(record, args.out)
+
+
+def emit(record: dict, out: Path | None) -> None:
+    print(json.dumps(record), flush=True)
+    if out is not None:
+        with out.open("a", encoding="utf-8") as f:
+            f.write(json.dumps(record) + "\n")
 
 
 if __name__ == "__main__":
