@@ -7,7 +7,7 @@ import pytest
 
 from codesign.errors import RecipeError
 from codesign.recipe import resolve_section
-from codesign_mpm.config import PRESET_CONFIGS, LocomotionConfig
+from codesign_mpm.config import PRESET_CONFIGS, LocomotionConfig, TerrainConfig
 from codesign_mpm.quality import QUALITY
 from codesign_mpm.simulate import SceneFileError, load_scene
 
@@ -33,7 +33,7 @@ def test_each_preset_resolves_to_the_documented_settings():
     assert list(documented) == ["draft", "default", "paper", "reference"] == list(QUALITY)
     for name, settings in documented.items():
         assert QUALITY[name].settings() == pytest.approx(settings), name
-        config = PRESET_CONFIGS["desert"](quality=name)
+        config = PRESET_CONFIGS["desert"](quality=name, terrain=TerrainConfig(height=0.1))  # over 3 dx at draft too
         assert config.dx == pytest.approx(settings["dx"])
         assert (config.cfl, config.dtype, config.checkpoint_every) == (
             settings["cfl"], settings["dtype"], settings["checkpoint_every"])
@@ -49,10 +49,19 @@ def test_the_default_preset_keeps_the_settings_recipes_had_before_presets():
 
 def test_explicit_keys_override_the_preset_in_a_recipe():
     section = resolve_section("environment", {"name": "desert", "quality": "reference", "dx": 0.05,
-                                              "robot": {"particles_per_cell": 1}, "cfl": 0.5})
+                                              "robot": {"particles_per_cell": 1}, "cfl": 0.5,
+                                              "terrain": {"height": 0.2}})
     config, reference = section.config, QUALITY["reference"]
     assert (config.dx, config.cfl, config.robot.particles_per_cell) == (0.05, 0.5, 1)
     assert (config.dtype, config.cover.particles_per_cell) == (reference.dtype, reference.cover_particles_per_cell)
+
+
+def test_a_preset_whose_dx_puts_the_terrain_in_the_wall_band_is_refused_when_the_recipe_is_read():
+    """The default terrain (0.08 high) is under 3 dx at `draft` (dx 1/32): refused by validation,
+    naming the key, its value and the least allowed, not first when the scene is built."""
+    with pytest.raises(RecipeError, match=r"environment.terrain.height: 0.08 is below the wall band; "
+                                          r"must be >= 3 dx = 0.09375"):
+        resolve_section("environment", {"name": "ground", "quality": "draft"})
 
 
 def test_an_unknown_preset_is_a_recipe_error_listing_the_allowed_names():
