@@ -117,8 +117,10 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
                                                         "into docs/images/studies/."),
         report: bool = typer.Option(False, "--report", help="Run nothing: write the table of the runs finished so "
                                                             "far (a study under way, in --dir or its default), or, "
-                                                            "where none are, of the committed docs/data/studies/ (an "
-                                                            "analysis: from its committed points)."),
+                                                            "where none are, of the records committed in "
+                                                            "docs/data/studies/. An analysis reports from its points "
+                                                            "(the committed ones where none are here), measuring only "
+                                                            "those they lack."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
     ) -> None:
         """Run one of the paper's studies (every arm x seed, continuing a killed one) and print its table."""
