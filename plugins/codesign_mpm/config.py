@@ -15,6 +15,7 @@ import numpy as np
 
 from codesign.bodies import BODY_FILE_SUFFIXES, LIBRARY_BODIES
 from codesign.errors import RecipeError
+from codesign_mpm.admissible import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio
 from codesign_mpm.quality import QUALITY_NAMES, quality
 
 ROBOT_BODIES = ("box", "ellipsoid", *LIBRARY_BODIES, "file")
@@ -298,8 +299,7 @@ def check_config(config: LocomotionConfig) -> None:
                           ("task.offset", config.task.offset, 3)):
         if len(value) != n:
             raise _problem(key, f"expected {n} numbers, got {list(value)}")
-    from codesign_mpm.admissible import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio
-    from codesign_mpm.scene import Scene
+    from codesign_mpm.scene import Scene  # the scene's wall band and action bound; it imports the materials
 
     wall = Scene().boundary_cells * config.dx
     if config.terrain.height < wall:
