@@ -117,13 +117,15 @@ def loss_landscape(study, root: Path, progress: bool = True) -> str:
                 "com": record.com.tolist(), "torn": record.metrics.get("torn_fraction", float("nan"))}
 
     s_values = [round(float(s), 6) for s in np.linspace(0.0, 1.0, params["points"])]
-    keys = [[*v, to, s] for v, to in curves for s in s_values]
     c_values = [round(float(c), 6) for c in params["corners"]]
-    try:
-        placed = _measure(root / "placement", keys, placement, progress, "placement")
-        cuts = _measure(root / "corner", c_values, cut, progress, "corner")
+    keys = [["placement", *v, to, s] for v, to in curves for s in s_values] + [["corner", c] for c in c_values]
+    try:  # one points.jsonl, as every analysis keeps (what `codesign study --docs` commits)
+        measured = _measure(root, keys, lambda key: placement(key[1:]) if key[0] == "placement" else cut(key[1]),
+                            progress, "point")
     finally:
         env.close()
+    placed = [p for p in measured if p["key"][0] == "placement"]
+    cuts = [p for p in measured if p["key"][0] == "corner"]
     losses = np.array([p["loss"] for p in placed]).reshape(len(curves), len(s_values))
 
     def local_minima(loss: np.ndarray) -> list[int]:
@@ -152,7 +154,7 @@ def loss_landscape(study, root: Path, progress: bool = True) -> str:
         for point in cuts:
             com = np.asarray(point["com"])
             ax.plot(np.arange(1, len(com) + 1) * env.control_dt, com[:, 0] - com[0, 0],
-                    label=f"corner {point['key']:.2f} ({point['removed']:.1%} removed)")
+                    label=f"corner {point['key'][1]:.2f} ({point['removed']:.1%} removed)")
         ax.set_xlabel("time (s)")
         ax.set_ylabel("centre of mass x - x(first step)")
         ax.legend(fontsize=7)
@@ -160,7 +162,7 @@ def loss_landscape(study, root: Path, progress: bool = True) -> str:
     _plot(root / f"{study.name}.png", "loss along actuator-placement parameters", draw_placement)
     _plot(root / f"{study.name}_corner.png", "a box and the same box missing a corner", draw_corner)
     full_loss = cuts[0]["loss"]
-    corner_rows = "\n".join(f"| {p['key']:.2f} | {p['removed']:.1%} | {p['loss']:.4f} | {p['loss'] - full_loss:+.4f} |"
+    corner_rows = "\n".join(f"| {p['key'][1]:.2f} | {p['removed']:.1%} | {p['loss']:.4f} | {p['loss'] - full_loss:+.4f} |"
                             for p in cuts)
     v, to = curves[shown]
     return "\n\n".join([
