@@ -115,8 +115,6 @@ def shape_drift(dx: float, contact: str, pic_time: float | None, terrain: dict, 
             "end_height_mm": [round(1e3 * h, 2) for h in heights]}
 
 
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", nargs="*", type=Path, help="run directories whose best episodes to replay")

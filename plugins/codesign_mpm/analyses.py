@@ -16,6 +16,7 @@ from typing import Any, Callable
 import numpy as np
 
 from codesign.artifacts import play
+from codesign.errors import RecipeError
 from codesign.interfaces import DesignFields
 from codesign.progress import progress_bar
 from codesign.recipe import resolve_recipe
@@ -201,7 +202,7 @@ def muscle_ambiguity(study, root: Path, progress: bool = True) -> str:
     env, _, full = _setup(study)
     T, K, bound = env.horizon, env.action_dim, params["bound"]
     if max(params["actuators"] + [params["target_actuators"]]) > K:
-        raise ValueError(f"study {study.name}: parameters.actuators and target_actuators go up to "
+        raise RecipeError(f"invalid study '{study.name}': study.parameters.actuators and target_actuators go up to "
                          f"{max(params['actuators'] + [params['target_actuators']])}, the robot has {K} "
                          f"(environment.robot.muscle_groups)")
     n_robot = len(full.occupancy)  # the full workspace: no particle is dropped
@@ -213,10 +214,9 @@ def muscle_ambiguity(study, root: Path, progress: bool = True) -> str:
             env.step(action)
         return env.sim.particles_state()[0][:n_robot].astype(np.float64)
 
-    def emd(a, b):
-        """W2 distance of two equal-mass particle sets (numpy or torch, differentiable in torch)."""
-        return ot.emd2(w, w, ot.dist(a, b)) ** 0.5 if torch.is_tensor(a) else \
-            float(math.sqrt(ot.emd2(w.numpy(), w.numpy(), ot.dist(a, b))))
+    def emd(a, b) -> torch.Tensor:
+        """W2 distance of two equal-mass particle sets (POT's exact EMD; differentiable in torch inputs)."""
+        return ot.emd2(w, w, ot.dist(torch.as_tensor(a), torch.as_tensor(b))) ** 0.5
 
     points = env.design_space.points
     cell_id = np.unique(_voxels(env.design_space, params["voxels"]), axis=0, return_inverse=True)[1].ravel()
@@ -254,8 +254,8 @@ def muscle_ambiguity(study, root: Path, progress: bool = True) -> str:
             loss.backward()
             adam.step()
         fitted = final_x(design, (bound * torch.tanh(best[1])).numpy())
-        return {"emd": emd(fitted, target), "moved": emd(points, target),
-                "unfitted": emd(final_x(design, bound * np.tanh(fresh)), target)}
+        return {"emd": float(emd(fitted, target)), "moved": float(emd(points, target)),
+                "unfitted": float(emd(final_x(design, bound * np.tanh(fresh)), target))}
 
     keys = [["stiffness", float(m), s] for m in params["multipliers"] for s in range(params["seeds"])]
     keys += [["placement", float(k), s] for k in params["actuators"] for s in range(params["seeds"])]

@@ -285,7 +285,7 @@ def _preset_config(name: str, preset: EnvironmentPreset) -> type:
 PRESET_CONFIGS: dict[str, type] = {name: _preset_config(name, preset) for name, preset in PRESETS.items()}
 
 
-def _problem(key: str, message: str) -> RecipeError:
+def environment_error(key: str, message: str) -> RecipeError:
     return RecipeError(f"invalid recipe: environment.{key}: {message}")
 
 
@@ -298,19 +298,19 @@ def check_config(config: LocomotionConfig) -> None:
                           ("task.direction", config.task.direction, 3), ("task.up", config.task.up, 3),
                           ("task.offset", config.task.offset, 3)):
         if len(value) != n:
-            raise _problem(key, f"expected {n} numbers, got {list(value)}")
+            raise environment_error(key, f"expected {n} numbers, got {list(value)}")
     from codesign_mpm.scene import Scene  # the scene's wall band and action bound; it imports the materials
 
     wall = Scene().boundary_cells * config.dx
     if config.terrain.height < wall:
-        raise _problem("terrain.height", f"{config.terrain.height!r} is below the wall band; "
-                       f"must be >= 3 dx = {wall:.4g}")
+        raise environment_error("terrain.height", f"{config.terrain.height!r} is below the wall band; "
+                                f"must be >= 3 dx = {wall:.4g}")
     robot, max_action = config.robot, Scene().max_action
     if active_stress_ratio(robot.muscle_stiffness_ratio, max_action, robot.poisson_ratio) > MAX_ACTIVE_STRESS_RATIO:
-        raise _problem("robot.muscle_stiffness_ratio", (
+        raise environment_error("robot.muscle_stiffness_ratio", (
             f"{robot.muscle_stiffness_ratio!r} is too strong for the body: at the action bound {max_action} its "
             f"stress would exceed {MAX_ACTIVE_STRESS_RATIO} x the shear modulus (numerical fracture); must be <= "
             f"{max_stiffness_ratio(max_action, robot.poisson_ratio):.4g} at poisson_ratio {robot.poisson_ratio}"))
     for key in ("direction", "up"):
         if not np.linalg.norm(getattr(config.task, key)) > 0:
-            raise _problem(f"task.{key}", "must be a non-zero vector")
+            raise environment_error(f"task.{key}", "must be a non-zero vector")

@@ -24,8 +24,8 @@ from codesign.errors import DesignError, RecipeError
 from codesign.interfaces import Controller, DesignFields, DesignSpace, Environment, StepResult
 from codesign.registry import suggest
 from codesign_mpm.batch import BatchSimulator
-from codesign_mpm.config import (CoverConfig, EnvironmentPreset, LocomotionConfig, RobotConfig, TaskConfig, _problem,
-                                 check_config)
+from codesign_mpm.config import (CoverConfig, EnvironmentPreset, LocomotionConfig, RobotConfig, TaskConfig,
+                                 check_config, environment_error)
 from codesign_mpm.engine import Simulator
 from codesign_mpm.episode import Episode, run_episode
 from codesign_mpm.integrity import MIN_THICKNESS_CELLS, IntegrityWatch, resolved_body, thinnest_cells
@@ -62,9 +62,9 @@ def _warn_wall_push(config: LocomotionConfig, preset: EnvironmentPreset) -> None
 
 def make_task(config: TaskConfig) -> Task:
     if config.name not in TASKS:
-        raise _problem("task.name", f"{config.name!r} is not a task; {suggest(config.name, TASKS)}"
-                                    f"allowed: {', '.join(sorted(TASKS))} (or a task registered with "
-                                    "codesign_mpm.tasks.register_task)")
+        raise environment_error("task.name", f"{config.name!r} is not a task; {suggest(config.name, TASKS)}"
+                                             f"allowed: {', '.join(sorted(TASKS))} (or a task registered with "
+                                             "codesign_mpm.tasks.register_task)")
     return TASKS[config.name](config)
 
 
@@ -80,8 +80,8 @@ def robot_shape(robot: RobotConfig) -> tuple[ShapeSpec, MuscleSpec]:
     """The robot's base shape and muscles: a grid of muscles in a box or ellipsoid, a library body's
     own muscles, or a body file's (its annotated groups, else the grid)."""
     if robot.body_file is not None and robot.body != "file":
-        raise _problem("robot.body_file", f"{robot.body_file!r} is set but robot.body is {robot.body!r}; "
-                                          "set robot.body: file (or body_file: null)")
+        raise environment_error("robot.body_file", f"{robot.body_file!r} is set but robot.body is {robot.body!r}; "
+                                                   "set robot.body: file (or body_file: null)")
     grid = MuscleSpec(groups=list(robot.muscle_groups), fiber=[1.0, 0.0, 0.0],
                       stiffness_ratio=robot.muscle_stiffness_ratio)
     if robot.body in ("box", "ellipsoid"):
@@ -89,12 +89,12 @@ def robot_shape(robot: RobotConfig) -> tuple[ShapeSpec, MuscleSpec]:
     if robot.body != "file":
         return ShapeSpec(kind="body", body=robot.body, size=list(robot.size)), replace(grid, layout="body")
     if not robot.body_file:
-        raise _problem("robot.body_file", f"{robot.body_file!r}: robot.body: file needs the path of a body file "
-                                          f"({', '.join(BODY_FILE_SUFFIXES)})")
+        raise environment_error("robot.body_file", f"{robot.body_file!r}: robot.body: file needs the path of a "
+                                                   f"body file ({', '.join(BODY_FILE_SUFFIXES)})")
     try:
         body = load_body(robot.body_file)
     except BodyError as exc:
-        raise _problem("robot.body_file", str(exc)) from exc
+        raise environment_error("robot.body_file", str(exc)) from exc
     shape = ShapeSpec(kind="body", file=robot.body_file, size=list(robot.size))
     return shape, replace(grid, layout="body") if body.n_groups else grid
 

@@ -65,15 +65,13 @@ def codesign_view(sources: list[Path], iterations: list[str], out: Path | None) 
     """`codesign view`: MPM runs (their environment a preset here), sweeps or studies of them, exports
     of `codesign simulate` and designs, as a Rerun recording (codesign_mpm.view)."""
     from codesign.runner import load_run_data
-    from codesign_mpm.view import is_run, runs_under
+    from codesign_mpm.view import is_run, runs_under, view
 
     for source in sources:
         runs = ([source] if is_run(source) else runs_under(source)) if source.is_dir() else []
         for run in runs:
             if load_run_data(run)[1].sections["environment"].name not in PRESETS:
                 return None
-    from codesign_mpm.view import view
-
     return view(sources, iterations, out)
 
 

@@ -284,10 +284,11 @@ def log_episode(stream, root: str, rec: Recording, named: bool = False) -> list[
             stream.log(f"{root}/robot/material", rr.Points3D.from_fields(positions=x[robot]))
             stream.log(f"{root}/robot/action", rr.Points3D.from_fields(
                 positions=x[robot], colors=rgb8(particle_colors(rec, f, scale)[robot])))
-            labels = rec.piece_labels(f)[robot]
+            pieces = rec.piece_labels(f)  # -1 off the robot, 0 its body, 1, 2, ... pieces torn off
+            labels = pieces[robot]
             colors = np.where(labels[:, None] > 0, PIECE_COLORS[(labels - 1) % len(PIECE_COLORS)], PASSIVE)
             stream.log(f"{root}/robot/piece", rr.Points3D.from_fields(positions=x[robot], colors=rgb8(colors)))
-            stream.log(f"{root}/plots/torn_percent", rr.Scalars(100 * rec.torn_fraction(labels_full(rec, labels))))
+            stream.log(f"{root}/plots/torn_percent", rr.Scalars(100 * rec.torn_fraction(pieces > 0)))
         for name, members in covers.items():
             stream.log(f"{root}/cover/{name}", rr.Points3D.from_fields(positions=x[members]))
         stream.log(f"{root}/com/path", rr.LineStrips3D([com[:f + 1]], colors=[[0, 0, 0]], radii=rec.dx / 5))
@@ -302,13 +303,6 @@ def log_episode(stream, root: str, rec: Recording, named: bool = False) -> list[
                 stream.log(f"{root}/plots/reward", rr.Scalars(float(rec.rewards[f - 1])))
     stream.reset_time()
     return [f"{root}/robot/{name}" for name in ("muscle_group", "material", "piece")]
-
-
-def labels_full(rec: Recording, robot_labels: np.ndarray) -> np.ndarray:
-    """(N,) torn mask of the whole scene from the robot particles' piece labels."""
-    torn = np.zeros(len(rec.material), bool)
-    torn[rec.robot] = robot_labels > 0
-    return torn
 
 
 def log_design(stream, root: str, design: Design) -> list[str]:
