@@ -116,13 +116,18 @@ def test_trajectory_and_mlp_controllers_respect_their_bound_and_seed():
             np.testing.assert_array_equal(u, b(obs, t).detach().numpy())
 
 
-def test_evaluate_writes_each_episodes_return_and_trajectory(tmp_path):
+def test_evaluate_writes_each_episodes_return_and_trajectory_and_keeps_the_best(tmp_path):
     recipe = {**TOY_CMA, "optimizer": {"name": "evaluate", "episodes": 2}}
     run_dir = runner.run(resolve_recipe(recipe), run_dir=tmp_path / "run", progress=False)
-    for i, row in enumerate(metrics(run_dir)):
+    rows = metrics(run_dir)
+    for i, row in enumerate(rows):
         data = np.load(run_dir / f"trajectory-{i}.npz")
         assert data["actions"].shape == (4, 2) and data["com"].shape == (4, 3)
         assert float(data["episode_return"]) == pytest.approx(row["episode_return"])
+    best = max(row["episode_return"] for row in rows)
+    assert runner.load_best_info(run_dir)["episode_return"] == pytest.approx(best)
+    assert float(np.load(run_dir / "best" / "trajectory.npz")["episode_return"]) == pytest.approx(best)
+    assert len(runner.evaluate_best(run_dir)) == 1  # its run replays as any optimizer's (the toy is random)
 
 
 class Knob:

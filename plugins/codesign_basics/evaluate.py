@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from codesign.artifacts import play
+from codesign.artifacts import play, save_best
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
 from codesign_basics.config import EvaluateConfig
 
@@ -16,13 +16,15 @@ class Evaluate(Optimizer):
 
     Each episode resets the environment with a seed drawn from the run's generator, so
     repeated episodes differ only where the environment is random. Each episode's centre of
-    mass and actions per step go to ``trajectory-<i>.npz`` in the run directory.
+    mass and actions per step go to ``trajectory-<i>.npz`` in the run directory, and the best
+    one to ``best/`` as every optimizer's does, so `codesign eval`, `render` and `view` take the run.
     """
 
     def __init__(self, config: EvaluateConfig) -> None:
         self.config = config
         self.iterations = config.episodes
         self.episode = 0
+        self.best_return = -float("inf")
 
     def setup(
         self,
@@ -40,10 +42,15 @@ class Evaluate(Optimizer):
         self.run_dir = run_dir
 
     def step(self) -> dict[str, float]:
-        record = play(self.environment, self.representation(), self.controller, seed=int(self.rng.integers(2**31)))
+        design = self.representation()
+        record = play(self.environment, design, self.controller, seed=int(self.rng.integers(2**31)))
         if self.run_dir is not None:
             np.savez_compressed(Path(self.run_dir) / f"trajectory-{self.episode}.npz", com=record.com,
                                 actions=record.actions, episode_return=record.episode_return)
+            if record.episode_return > self.best_return:
+                save_best(Path(self.run_dir), design, self.environment.design_space.points, self.controller, record,
+                          {"iteration": self.episode, "episode_return": record.episode_return, **record.metrics})
+        self.best_return = max(self.best_return, record.episode_return)
         self.episode += 1
         return {
             "episode_return": record.episode_return,
@@ -53,7 +60,8 @@ class Evaluate(Optimizer):
         }
 
     def state_dict(self) -> dict:
-        return {"episode": self.episode}
+        return {"episode": self.episode, "best_return": self.best_return}
 
     def load_state_dict(self, state: dict) -> None:
         self.episode = state["episode"]
+        self.best_return = state.get("best_return", -float("inf"))
