@@ -10,13 +10,16 @@ docs/contact.md section 24 reads them.
     python benchmarks/contact_steps.py runs/qs --gait --settings "spring, pic_time" --terrain contact_stiffness=2e5
     python benchmarks/contact_steps.py --random-gaits 8 --recipe recipes/quickstart.yaml --dx 0.03125 0.0208333
     python benchmarks/contact_steps.py --gait --shapes --dx 0.03125 0.0208333 --settings nodes "spring, pic_time"
+    python benchmarks/contact_steps.py --floating --dx 0.03125 0.0208333 --settings "nodes, pic_time"
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import time
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 from omegaconf import OmegaConf
@@ -84,15 +87,17 @@ def rebound(cfl: float, contact: str, pic_time: float | None, terrain: dict, fli
 
 
 def shape_drift(dx: float, contact: str, pic_time: float | None, terrain: dict, flip: float,
-                amplitude: float = 0.3, frames: int = 125) -> dict:
-    """The travelling gait on a frictionless floor (no propulsion: what moves is the body itself):
-    how far the robot's shape (its particles about their centroid) moves from its start, and how far
-    the shapes at cfl and cfl / 4, and at cfl / 4 and cfl / 16, lie apart (RMS over particles, mm),
-    at frames 30, 60, 90 and 124; and the centroid's height at the end."""
+                amplitude: float = 0.3, frames: int = 125, floating: bool = False) -> dict:
+    """The travelling gait on a frictionless floor (no propulsion: what moves is the body itself), or
+    `floating` 0.15 above it with gravity 0 (no contact at all): how far the robot's shape (its
+    particles about their centroid) moves from its start, and how far the shapes at cfl and cfl / 4,
+    and at cfl / 4 and cfl / 16, lie apart (RMS over particles, mm; `*_unrotated`: after the best
+    rotation of one onto the other), at frames 30, 60, 90 and 124; and the centroid's height at the end."""
     shapes, heights = [], []
     for factor in FACTORS:
-        env = robot_env("ground", Setting(dx=dx, cfl=0.4 * factor), frames, friction=0.0, contact=contact,
-                        pic_time=pic_time, flip=flip, terrain=terrain)
+        with _floating() if floating else contextlib.nullcontext():
+            env = robot_env("ground", Setting(dx=dx, cfl=0.4 * factor), frames, friction=0.0, contact=contact,
+                            pic_time=pic_time, flip=flip, terrain=terrain)
         try:
             env.reset()
             robot = env.particles.robot
@@ -107,12 +112,42 @@ def shape_drift(dx: float, contact: str, pic_time: float | None, terrain: dict, 
             env.close()
     at = [30, 60, 90, frames - 1]
 
-    def rms_mm(a: np.ndarray, b: np.ndarray) -> list[float]:
-        return [round(1e3 * float(np.sqrt(((a[i] - b[i]) ** 2).sum(1).mean())), 3) for i in at]
+    def rms_mm(a: np.ndarray, b: np.ndarray, unrotate: bool = False) -> list[float]:
+        return [round(1e3 * float(np.sqrt(((a[i] - (_rotated_onto(a[i], b[i]) if unrotate else b[i])) ** 2)
+                                          .sum(1).mean())), 3) for i in at]
 
-    return {"frames": at, "shape_motion_mm": rms_mm(shapes[2], np.broadcast_to(shapes[2][0], shapes[2].shape)),
+    start = np.broadcast_to(shapes[2][0], shapes[2].shape)
+    return {"frames": at, "shape_motion_mm": rms_mm(shapes[2], start),
             "apart_quarter_mm": rms_mm(shapes[0], shapes[1]), "apart_sixteenth_mm": rms_mm(shapes[1], shapes[2]),
+            "apart_quarter_unrotated_mm": rms_mm(shapes[0], shapes[1], True),
+            "apart_sixteenth_unrotated_mm": rms_mm(shapes[1], shapes[2], True),
             "end_height_mm": [round(1e3 * h, 2) for h in heights]}
+
+
+def _rotated_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Centred points b under the rotation that brings them closest to a (Kabsch)."""
+    u, _, vt = np.linalg.svd(b.T @ a)
+    return b @ (u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt)
+
+
+@contextlib.contextmanager
+def _floating():
+    """Environments built inside have gravity 0 and the robot 0.15 above the terrain: the body's own
+    motion without any contact (the environment has no key for either, so the scene is edited)."""
+    import codesign_mpm.env as env_module
+
+    make_scene = env_module.make_scene
+
+    def lifted(config, preset):
+        scene = make_scene(config, preset)
+        scene.gravity = [0.0, 0.0, 0.0]
+        robot = scene.bodies[0]
+        robot.rest_on_terrain = False
+        robot.center = [robot.center[0], robot.center[1] + 0.15, robot.center[2]]
+        return scene
+
+    with mock.patch.object(env_module, "make_scene", lifted):
+        yield
 
 
 def main() -> None:
@@ -122,6 +157,8 @@ def main() -> None:
                                                             "each --dx")
     parser.add_argument("--shapes", action="store_true", help="also the travelling gait's shape on a frictionless "
                                                               "floor at each --dx (shape_drift)")
+    parser.add_argument("--floating", action="store_true", help="also the travelling gait's shape on a body floating "
+                                                                "with gravity 0, no contact, at each --dx")
     parser.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
     parser.add_argument("--terrain", nargs="*", default=[], metavar="KEY=VALUE",
                         help="more terrain keys for every setting, e.g. contact_stiffness=2e5 contact_damping=0.3")
@@ -148,11 +185,12 @@ def main() -> None:
                 for dx in args.dx for seed in range(args.random_gaits)]
     if args.ball:
         sources.append(("ball rebound", lambda c, p: [rebound(0.4 * f, c, p, terrain, flip) for f in FACTORS]))
-    if args.shapes:
+    for floating in [False] * args.shapes + [True] * args.floating:
         for dx in args.dx:
             for label in args.settings:
-                emit({"source": f"shape, frictionless, dx {dx:.4g}", "setting": label, "terrain": terrain, "flip": flip,
-                      "cfl_factors": list(FACTORS), **shape_drift(dx, *SETTINGS[label], terrain, flip)}, args.out)
+                emit({"source": f"shape, {'floating' if floating else 'frictionless'}, dx {dx:.4g}", "setting": label,
+                      "terrain": terrain, "flip": flip, "cfl_factors": list(FACTORS),
+                      **shape_drift(dx, *SETTINGS[label], terrain, flip, floating=floating)}, args.out)
     for source, measure in sources:
         for label in args.settings:
             started = time.perf_counter()
