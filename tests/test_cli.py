@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import pytest
 import yaml
@@ -92,3 +93,14 @@ def test_eval_lines_name_the_bodys_integrity_where_the_environment_measures_it()
          "thinnest part 1 cells")
     assert episode_line(3, float("nan"), {"unplayable": 1.0}) == \
         "episode 3: return nan (the environment refused the design: not played)"
+
+
+def test_the_cli_reference_lists_every_command_and_option_as_the_cli_has_them():
+    from codesign.clidoc import reference
+
+    page = (Path(__file__).parents[1] / "docs" / "cli-reference.md").read_text(encoding="utf-8")
+    assert page == reference(), "docs/cli-reference.md is stale: python -m codesign.clidoc > docs/cli-reference.md"
+    for command in ("run", "sweep", "study", "eval", "view", "show", "plugins", "simulate", "render", "annotate",
+                    "bench engine", "bench accuracy", "bench stability", "bench compile", "bench environments"):
+        assert f"## `codesign {command}`" in page
+    assert "`--report`" in page and "`--scale <list[str]>`" in page
