@@ -3,7 +3,7 @@
 2. a float64 rollout's gradients (actions, volume, the springs' initial values) equal the CPU's;
 3. forward cost: particle-substeps/s of the nodes, surface and spring contacts on the quick start's
    box at dx 1/64 (40 frames after 5; the median of --repeats).
-Writes $OUT/spring_<arch>.json (or ./); docs/contact.md section 24 reads it.
+Writes $OUT/spring_<arch>.json (or ./); docs/log/contact.md section 24 reads it.
 
     python benchmarks/contact_devices.py cuda
     python benchmarks/contact_devices.py cpu --repeats 5

@@ -3,7 +3,7 @@ travelling gait of docs/accuracy.md (1 s on robot_ground, stress-free or settled
 sine gaits of a recipe's body and an elastic ball's rebound, at the CFL number of the recipe (0.4)
 and at a quarter and a sixteenth of it, for each contact and PIC setting.
 Prints one JSON line per (source, setting) with the three returns (appended to --out);
-docs/contact.md section 24 reads them.
+docs/log/contact.md section 24 reads them.
 
     codesign run recipes/quickstart.yaml --run-dir runs/qs     # and cma_es, cppn_neat: the runs to replay
     python benchmarks/contact_steps.py runs/qs runs/cma --gait --out records.jsonl

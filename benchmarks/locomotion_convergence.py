@@ -5,7 +5,7 @@ whether random gaits rank the same at the quality presets (Spearman's rho of the
 the report's reference setting at finer grids (reference); and the terrain's surface moved within
 one cell (offsets). `--contact surface` measures the same with the terrain's surface contact; `--start stress-free` with
 the robot starting stress-free (it lands and sags in the first frames) instead of at rest.
-Prints JSON lines (and appends them to --out); docs/contact.md reads them.
+Prints JSON lines (and appends them to --out); docs/log/contact.md reads them.
 
     python benchmarks/locomotion_convergence.py ground --arch cuda --out records.jsonl
     python benchmarks/locomotion_convergence.py floating
@@ -128,7 +128,7 @@ def reference(environment: str, n: int, arch: str, seconds: float, contact: str,
 def offsets(n: int, friction: float, fractions: list[float], arch: str, at_reference: bool, contact: str,
             settled: bool, environment: str = "ground") -> dict:
     """The gait's distance with the terrain's surface at (floor(0.13 n) + f) / n for each fraction f
-    of a cell: how much where the surface falls between node layers moves it (docs/contact.md
+    of a cell: how much where the surface falls between node layers moves it (docs/log/contact.md
     section 13). `at_reference`: at the accuracy report's reference setting (`fine`)."""
     setting = fine(n) if at_reference else Setting(dx=1 / n)
     distances = [ground(setting, friction, arch, terrain_height=(math.floor(0.13 * n) + f) / n,

@@ -257,7 +257,7 @@ def gait(frame: int, k: int, amplitude: float = 0.3, hz: float = 4.0) -> np.ndar
     front-top): sin(2 pi hz t + phase) with phases (0, pi/2, 3 pi/2, 0), the top a quarter period
     ahead of the bottom at the back and behind it at the front. Of 48 gaits at the action bound
     (2, 4 and 6 Hz x 16 phase patterns, dx 1/48) it moved the box furthest forward: 0.027 in 1 s,
-    steadily (docs/contact.md). The gait used before moved it 1 to 2 mm with muscles within their
+    steadily (docs/log/contact.md). The gait used before moved it 1 to 2 mm with muscles within their
     means, too little for a relative error to mean anything."""
     phase = 2 * math.pi * hz * frame * 8e-3
     return amplitude * np.sin(phase + np.array([0.0, math.pi / 2, 3 * math.pi / 2, 0.0]))[:k]
@@ -305,7 +305,7 @@ def measure_robot(environment: str, arch: str = "cpu", contact: str = "nodes",
                   settled: bool = True) -> Callable[[Setting, dict], dict]:
     """The distance the gait carries the robot from its start (`settled`: at rest under its weight, as
     the report measures it; else stress-free, when the landing and sagging of the first frames, which
-    depend on dx, count too: docs/contact.md section 17)."""
+    depend on dx, count too: docs/log/contact.md section 17)."""
     def run(s: Setting, params: dict) -> dict:
         frames = int(round(params.get("seconds", 1.0) / 8e-3))
         env = robot_env(environment, s, frames, arch=arch, contact=contact, settled=settled)
@@ -466,7 +466,7 @@ PROBLEMS: dict[str, Problem] = {
               "setting within 6% (26.9 mm): the distance has a limit in space. Where the terrain's surface falls "
               "within a cell still moves it, by +-15% at dx 1/48 and +-4% at 1/96, so neighbouring settings can "
               "swap. Started stress-free (as a design optimiser's episodes are: the body lands and sags while the "
-              "gait runs) it was a third to a half off at dx 1/32 to 1/64 and had no limit (docs/contact.md "
+              "gait runs) it was a third to a half off at dx 1/32 to 1/64 and had no limit (docs/log/contact.md "
               "sections 13 and 17). Compare designs and controllers at one setting and confirm a number at paper "
               "quality."),
     "robot_desert": Problem(
@@ -476,7 +476,7 @@ PROBLEMS: dict[str, Problem] = {
         notes="The sand layer is 0.02 thick: half a cell at dx 1/24, so coarse grids hardly resolve it; with it "
               "the scene has about 8x the particles of the robot alone (the reference took 49 minutes here). Until "
               "2026-11-26 the layer was sampled a whole number of particle spacings thick and cut around the robot "
-              "by grid cells, which moved the distance by up to 2x between settings (docs/contact.md sections 20 and "
+              "by grid cells, which moved the distance by up to 2x between settings (docs/log/contact.md sections 20 and "
               "21). Since, the reference agrees with dx 1/96 at its setting within 2% (6.95 mm): it is converged. "
               "At 8 particles per cell the distance is 6 and 15% over it at dx 1/48 and 1/96 and 14% under at 1/64 "
               "(where the sand is 1.3 cells thick); what is left at dx 1/96 is the particles per cell: the sand's "

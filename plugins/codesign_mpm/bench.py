@@ -263,7 +263,7 @@ def measure_adaptive(case: Case, frames: int = 3, repeats: int = 5) -> dict:
                 cost=float(np.median(np.asarray(times["adaptive"]) / np.asarray(times["fixed"]))))
 
 
-FLIP_MEASURED = 0.99  # the share docs/contact.md measured converging in time
+FLIP_MEASURED = 0.99  # the share docs/log/contact.md measured converging in time
 
 
 def _timed_pair(variants: dict, frames: int, repeats: int, backward_frames: int) -> dict:
@@ -302,7 +302,7 @@ def _timed_pair(variants: dict, frames: int, repeats: int, backward_frames: int)
 
 
 def measure_flip(case: Case, frames: int = 3, repeats: int = 5, backward_frames: int = 20) -> dict:
-    """What the FLIP share of the velocity update costs (docs/contact.md section 10): `scene.flip`
+    """What the FLIP share of the velocity update costs (docs/log/contact.md section 10): `scene.flip`
     0.99 against APIC alone (flip 0, a bare scene's default)."""
     scene = robot_scene(case)
     variants = {"flip": replace(scene, flip=FLIP_MEASURED), "apic": replace(scene, flip=0.0)}
@@ -310,7 +310,7 @@ def measure_flip(case: Case, frames: int = 3, repeats: int = 5, backward_frames:
 
 
 def measure_contact(case: Case, frames: int = 3, repeats: int = 5, backward_frames: int = 20) -> dict:
-    """What the surface contact costs (docs/contact.md section 15): `terrain.contact: surface`
+    """What the surface contact costs (docs/log/contact.md section 15): `terrain.contact: surface`
     against the node contact, both with the FLIP share of a recipe."""
     scene = replace(robot_scene(case), flip=FLIP_MEASURED)
     variants = {"surface": replace(scene, terrain=replace(scene.terrain, contact="surface")), "nodes": scene}

@@ -21,7 +21,7 @@ from codesign_mpm.quality import QUALITY_NAMES, quality
 ROBOT_BODIES = ("box", "ellipsoid", *LIBRARY_BODIES, "file")
 COVER_KINDS = ("none", "sand", "snow", "clay", "mud", "water")
 # FLIP's share in a robot's velocity update: a gait's distance then holds within 5% from cfl 0.4 to
-# 0.025 at dx 1/32, where APIC alone (0) loses it all (docs/contact.md sections 10-11)
+# 0.025 at dx 1/32, where APIC alone (0) loses it all (docs/log/contact.md sections 10-11)
 FLIP_DEFAULT = 0.99
 
 
@@ -147,7 +147,7 @@ class TerrainConfig:
     contact: str = field(default="nodes", metadata={
         "choices": ["nodes", "surface", "spring"],
         "help": "nodes: hold the grid nodes below the surface; surface: contact at the exact surface, "
-                "whatever its height within a cell (docs/contact.md section 15); spring: at the exact "
+                "whatever its height within a cell (docs/log/contact.md section 15); spring: at the exact "
                 "surface, a spring-damper of physical stiffness with friction that remembers (a tangential "
                 "spring per particle, capped by Coulomb)"})
     contact_stiffness: float = field(default=2.0e6, metadata={
@@ -224,7 +224,7 @@ class LocomotionConfig:
     flip: float = field(default=FLIP_DEFAULT, metadata={
         "ge": 0, "lt": 1, "help": "FLIP's share in the robot's velocity update: a particle keeps its own velocity plus "
                                   "the grid's change, so a gait converges as the step shrinks; 0 is APIC alone, which "
-                                  "damps once per substep (docs/contact.md sections 10-11)"})
+                                  "damps once per substep (docs/log/contact.md sections 10-11)"})
     pic_time: Optional[float] = field(default=None, metadata={
         "gt": 0, "help": "the PIC share as a time constant, s: each substep keeps FLIP's share exp(-dt / pic_time), "
                          "so the damping per second does not grow with the number of substeps (0.265 is flip 0.99 at "

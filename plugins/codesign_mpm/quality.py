@@ -35,21 +35,21 @@ QUALITY: dict[str, Quality] = {
                      purpose="smoke tests, recipe debugging, quick sweeps (the quick start's grid); cfl 0.8 "
                              "blows up far earlier in docs/stability.md. A gait's distance from rest is a quarter "
                              "off and fast gaits move differently; it ranks 24 random gaits roughly as paper does "
-                             "(Spearman 0.79 on ground, 0.80 in sand, docs/contact.md section 23): not for final "
+                             "(Spearman 0.79 on ground, 0.80 in sand, docs/log/contact.md section 23): not for final "
                              "rankings; in the desert a third under the reference (its 0.02 of sand is 0.64 cells "
                              "thick)"),
     "default": Quality(dx=1 / 48, particles_per_cell=8, cover_particles_per_cell=8, cfl=0.4, dtype="float32",
                        purpose="the settings every recipe had before presets (kept so that results do not move); "
                                "day-to-day optimisation at one fixed setting. A gait's distance from rest within "
                                "8% of the reference (the terrain's offset within a cell moves it +-15%), gaits "
-                               "ranked as paper ranks them (Spearman 0.90 over 24 random gaits, docs/contact.md "
+                               "ranked as paper ranks them (Spearman 0.90 over 24 random gaits, docs/log/contact.md "
                                "section 23); from a stress-free start (design optimisation) a third off: confirm a "
                                "number at paper. In the desert within 6% (the offset +-6%), gaits ranked as paper "
                                "ranks them (Spearman 0.92 over 24; gaits that move under a millimetre swap)"),
     "paper": Quality(dx=1 / 96, particles_per_cell=8, cover_particles_per_cell=27, cfl=0.4, dtype="float32",
                      purpose="figures and final numbers: a gait's distance from rest within 8% of the reference "
                              "and 2% of dx 1/160, the terrain's offset within a cell moving it +-4% "
-                             "(docs/contact.md section 17); from a stress-free start the offset moves it about "
+                             "(docs/log/contact.md section 17); from a stress-free start the offset moves it about "
                              "15% (section 13): compare designs on one terrain, or set terrain.contact: surface "
                              "with cfl 0.2 (section 15). In the desert 8% over the reference (the offset +-5%) "
                              "with the cover at 27 particles per cell (at 8 it was 15% over; section 21), which "
@@ -58,7 +58,7 @@ QUALITY: dict[str, Quality] = {
                              "cover.particles_per_cell: 8 to save it"),
     "reference": Quality(dx=1 / 128, particles_per_cell=27, cover_particles_per_cell=27, cfl=0.2, dtype="float64",
                          purpose="the finest setting measured: the answer the others are compared with. On ground from "
-                                 "rest it agrees with dx 1/160 within 6% (docs/contact.md section 17), from a "
+                                 "rest it agrees with dx 1/160 within 6% (docs/log/contact.md section 17), from a "
                                  "stress-free start it has no limit (section 13); in the desert it agrees with dx "
                                  "1/96 at its setting within 2% (section 21)"),
 }

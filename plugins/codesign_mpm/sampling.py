@@ -297,7 +297,7 @@ def _inside(points: np.ndarray, bodies: list[dict[str, np.ndarray]]) -> np.ndarr
     (the cube root of its volume) of one of them along every axis. (Grid cells holding a particle
     were used before: where a cell boundary fell within the half spacing under a body's lowest row,
     a sheet of the desert's sand was sampled inside the robot and halved its distance at dx 1/64 and
-    1/96: docs/contact.md section 21.)"""
+    1/96: docs/log/contact.md section 21.)"""
     inside = np.zeros(len(points), dtype=bool)
     for body in bodies:
         half = 0.5 * np.cbrt(body["volume"])
@@ -323,7 +323,7 @@ def _layer_particles(scene: Scene, i: int, body: BodySpec, others: list[dict[str
     Each column of particles spans the layer exactly, from its own ground up: round(thickness /
     spacing) rows of equal height, so the layer's mass and top do not snap to the particle
     spacing (on a plain lattice the desert's 0.02 of sand was sampled 0.0234 thick at 8 particles
-    per cell and 0.0208 at 27, dx 1/64, and the robot's distance in it moved by 40%: docs/contact.md
+    per cell and 0.0208 at 27, dx 1/64, and the robot's distance in it moved by 40%: docs/log/contact.md
     section 20). The walls are the outermost `boundary_cells` nodes, so the last wall node, at
     (boundary_cells - 1) dx from the edge, is where material comes to rest against them.
     """

@@ -113,7 +113,7 @@ class TerrainSpec:
     octaves: int = 3
     seed: int = 0
     # nodes: the nodes below the surface are held (fast; where the surface falls within a cell moves a
-    # gait's distance by up to a third); surface: contact at the exact surface (docs/contact.md section 15);
+    # gait's distance by up to a third); surface: contact at the exact surface (docs/log/contact.md section 15);
     # spring: at the exact surface, a spring-damper of physical stiffness whose friction remembers
     # (engine/contact.py)
     contact: str = "nodes"
@@ -133,7 +133,7 @@ class Scene:
     frame_dt: float = 8e-3  # one control step; actions are held over its substeps
     cfl: float = 0.4  # dt <= cfl * dx / (wave speed + speed)
     # FLIP's share in the elastic bodies' velocity update; 0, APIC alone, conserves angular momentum
-    # exactly. The locomotion environment's default is config.FLIP_DEFAULT (docs/contact.md sections 10-11)
+    # exactly. The locomotion environment's default is config.FLIP_DEFAULT (docs/log/contact.md sections 10-11)
     flip: float = 0.0
     # the PIC share as a time: each substep keeps exp(-dt / pic_time) of FLIP (None: `flip` per substep)
     pic_time: Optional[float] = None

@@ -33,7 +33,7 @@ FOOT_STEP = 1e-5  # relative, for the foot's Young's modulus and fibre direction
 membership in a muscle moves the loss by ~1e-6 per unit: on Perlin terrain 1.49689e-6 at a step
 of 1e-6 against the adjoint's 1.49638e-6, 1.49641e-6 and 1.496377e-6 at 1e-5 and 1e-4; clay's
 foot (a plastic body: kinks) wants the small end, 5.24164e-6 at 1e-4 and 1e-5, 5.24977e-6 at 1e-3.
-With docs/contact.md section 14's surface contact the foot's fibre at a step of 1e-6 gives 1.52348e-6 against
+With docs/log/contact.md section 14's surface contact the foot's fibre at a step of 1e-6 gives 1.52348e-6 against
 the adjoint's 1.52381e-6; ground's foot at 1e-5, 1e-4 (Young's modulus, relative): 1.668357e-10,
 1.668389e-10 against 1.668389e-10. A cover particle's Young's modulus keeps a relative 1e-6
 (mud's yield kinks at 1e-5)."""

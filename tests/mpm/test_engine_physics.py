@@ -76,7 +76,7 @@ def gait_distance(cfl: float = 0.4, dx: float = DX, **options) -> float:
 def test_the_surface_contact_does_not_see_where_the_surface_falls_within_a_cell():
     """The node contact holds the layers of nodes below the surface, so moving the terrain by less than
     a cell moved a gait's distance by 16% at dx 1/32 (26.1 and 22.3 mm at offsets 0.05 and 0.75;
-    docs/contact.md section 13); the surface contact holds the particles at the exact surface
+    docs/log/contact.md section 13); the surface contact holds the particles at the exact surface
     (measured: 28.4 and 28.5 mm, and 28.0 to 28.5 over four offsets; section 15)."""
     near, far = (gait_distance(terrain_height=(4 + offset) * DX, contact="surface") for offset in (0.05, 0.75))
     assert near > 0.015 and far > 0.015, "the gait should move the box forwards"
@@ -84,7 +84,7 @@ def test_the_surface_contact_does_not_see_where_the_surface_falls_within_a_cell(
 
 
 def test_the_surface_contact_converges_in_time():
-    """The same gait at dx 1/48 (docs/contact.md section 15): 18.6 and 18.4 mm at cfl 0.1 and 0.025.
+    """The same gait at dx 1/48 (docs/log/contact.md section 15): 18.6 and 18.4 mm at cfl 0.1 and 0.025.
     The surface contact before (a particle impulse before p2g plus nodes held by their share after
     it) went 21.6 -> 28.5 mm over the same steps, and on to 31.0 at cfl 0.0125."""
     coarse, fine = (gait_distance(cfl, dx=1 / 48, contact="surface") for cfl in (0.1, 0.025))
@@ -206,7 +206,7 @@ def test_elastic_bar_rings_at_its_analytic_frequency_and_converges():
 
 def test_a_gait_converges_in_time_with_the_flip_share_and_drifts_without_it():
     """APIC damps non-affine motion once per substep, so a gait on terrain loses distance as the
-    step shrinks; with the FLIP share it has a limit (docs/contact.md section 10). The travelling
+    step shrinks; with the FLIP share it has a limit (docs/log/contact.md section 10). The travelling
     gait for 1 s at dx 1/32: APIC 26.2 mm at cfl 0.4 and 16.0 at cfl 0.1; flip 0.99 29.1 and 28.9."""
     flip = {cfl: gait_distance(cfl, flip=0.99) for cfl in (0.4, 0.1)}
     apic = {cfl: gait_distance(cfl, flip=0.0) for cfl in (0.4, 0.1)}

@@ -214,7 +214,7 @@ def test_a_layer_tiles_the_space_a_resting_box_leaves(offset):
     particle inside the box, wherever the terrain falls within a cell. Cut by grid cells instead,
     the layer left up to a cell free around the box (0.7% of its volume here) and, with the terrain
     0.75 of a cell above a node, laid a sheet of sand inside the box's lowest half row (the robot's
-    distance in the desert halved: docs/contact.md section 21)."""
+    distance in the desert halved: docs/log/contact.md section 21)."""
     dx, thickness = 1 / 32, 0.03
     s = Scene(dx=dx, terrain=TerrainSpec(height=(4 + offset) * dx),
               bodies=[BodySpec(center=[0.5, 0.0, 0.5], rest_on_terrain=True, shape=ShapeSpec(size=[0.1] * 3)),

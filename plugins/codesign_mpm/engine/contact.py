@@ -17,7 +17,7 @@ j sum w^2 / M_i, and its neighbours' through the nodes they share; m* splits eac
 among the particles in contact there (in proportion to their weights), so a layer of particles
 that all need the same change gets it in one pass, on the mass that carries them and no more
 (one Jacobi pass of a mass-split solve: more passes moved a gait's distance by under 10% and a
-block resting on an incline by under 1%). What this fixes, measured in docs/contact.md section 15:
+block resting on an incline by under 1%). What this fixes, measured in docs/log/contact.md section 15:
 - where the surface falls within a cell no longer moves the grip (the node contact holds whole
   layers of nodes, so it did, by 14 to 31% at every dx: section 13);
 - the answer converges in time: an earlier surface contact (section 14) took part of the normal
@@ -44,12 +44,12 @@ impulse is that of a spring-damper of physical stiffness over the substep, and f
 Why: a memoryless contact compares a tangential velocity that the particle-grid round trip
 rebuilds at every substep (order 1) with a friction bound that a resting contact gains per
 substep (order dt), so sticking fades as the step shrinks and a gait's score follows the number of
-substeps (docs/contact.md sections 16-19). The spring integrates the rebuilt velocity over time
+substeps (docs/log/contact.md sections 16-19). The spring integrates the rebuilt velocity over time
 into a displacement that pulls the particle back to where it stuck. What it does not yet remove:
 implicit Euler damps a spring by about dt omega / 2 beyond its own damping, comparable with it
 at the CFL step (omega dt ~ 0.7 for the default stiffness at dx 1/32) and negligible at a
 sixteenth of it; solving the springs exactly over the substep removes that but puts a resting
-body's depth off by a third at the default stiffness (docs/contact.md section 24).
+body's depth off by a third at the default stiffness (docs/log/contact.md section 24).
 `_Contact` is a part of the engine's storage class (`storage._Storage`). Its kernels' adjoints are
 Taichi's (`.grad`): the reverse pass runs the scatter's adjoint, takes the scatter back (sign -1)
 to recover the grid velocity the impulses were computed from, then the impulses' adjoint.

@@ -8,12 +8,12 @@
 Why FLIP: APIC hands each particle the grid's velocity, which keeps the particles' affine
 motion and filters away the rest, at every substep: a damping whose rate is the number of
 substeps per second. A robot on terrain, whose velocity near a stuck contact is not affine
-within a cell, lost its progress as the step shrank (docs/contact.md sections 8-10). With the
+within a cell, lost its progress as the step shrank (docs/log/contact.md sections 8-10). With the
 FLIP share, a particle keeps its own velocity and adds the grid's change over the substep,
 `v_p' = V_p + flip (v_p - V_p^old)` (V_p: the grid's new velocity at p, V_p^old: the grid's
 velocity before forces, both gathered with p's weights); positions move with the grid (V_p),
 as F does, so the deformation stays that of the grid's field. A particle crushed below `J_FLIP`
-takes APIC's velocity alone: there the kept velocities created energy (docs/contact.md section 11).
+takes APIC's velocity alone: there the kept velocities created energy (docs/log/contact.md section 11).
 A bare `Scene` defaults to flip 0; the locomotion environment to 0.99.
 
 Scatters without atomics: on a CPU a float atomic add is a compare-and-swap loop, and p2g's
@@ -39,7 +39,7 @@ from codesign_mpm.materials import MATERIALS
 
 # a particle compressed below this volume ratio takes APIC's velocity alone, whatever the FLIP share:
 # crushed bodies (a drop faster than the body's wave speed, J -> 0.01) otherwise gain energy
-# (docs/contact.md section 11); locomotion stays above J = 0.5
+# (docs/log/contact.md section 11); locomotion stays above J = 0.5
 J_FLIP = 0.5
 
 
@@ -290,7 +290,7 @@ class _Transfers:
     @ti.func
     def _flip_share(self, p, s):
         """scene.flip for the elastic bodies, 0 (APIC alone) for the covers (with FLIP, a water column's
-        mean pressure gradient fell 10% below rho g: docs/contact.md section 10) and for a particle
+        mean pressure gradient fell 10% below rho g: docs/log/contact.md section 10) and for a particle
         crushed below J_FLIP in slot s. The switch is piecewise constant, so the adjoint needs no term
         for it."""
         share = 0.0
