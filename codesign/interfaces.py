@@ -67,9 +67,13 @@ class StepResult:
     """What one control step of an environment returns."""
 
     observation: np.ndarray
+    """(observation_dim,) what the controller sees next."""
     reward: float
+    """The task's reward for this step."""
     done: bool
+    """True once the episode is over (its horizon reached, or the environment ended it)."""
     info: dict = field(default_factory=dict)
+    """Anything else the environment reports of the step (e.g. the robot's centre of mass, "com")."""
 
 
 class Environment(ABC):
@@ -81,8 +85,11 @@ class Environment(ABC):
     """
 
     design_space: DesignSpace
+    """What a representation may shape."""
     action_dim: int
+    """K, the length of an action (one value per muscle)."""
     observation_dim: int
+    """The length of an observation."""
     horizon: int
     """Control steps per episode."""
     control_dt: float
@@ -167,6 +174,7 @@ class Optimizer(ABC):
     """
 
     iterations: int
+    """How many times the runner calls :meth:`step`."""
     maximize: ClassVar[dict[str, bool]] = {}
     """Metrics for which lower is better map to False; any other metric's best value is its max."""
     stopped: str | None = None
