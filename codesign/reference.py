@@ -62,7 +62,7 @@ def api_reference() -> str:
                        and isinstance(following.value, ast.Constant) else "")
                 default = "" if item.value is None else f" = {ast.unparse(item.value)}"
                 declaration = f"{ast.unparse(item.target)}: {ast.unparse(item.annotation)}{default}"
-                attributes.append(f"| `{declaration}` | {' '.join(doc.split())} |".replace(" | None", " \\| None"))
+                attributes.append(_table_row([f"`{declaration}`", " ".join(doc.split())]))
             elif isinstance(item, ast.FunctionDef):
                 required = any(ast.unparse(d) == "abstractmethod" for d in item.decorator_list)
                 signature = f"{item.name}({ast.unparse(item.args)})" + (
@@ -100,7 +100,11 @@ def _row(param, ctx) -> str:
     """A table row: the argument's or option's declaration, and its help with typer's [default: ...]
     and [required]."""
     declaration, meaning = param.get_help_record(ctx) or (param.name, "")
-    cells = [f"`{declaration}`", " ".join(meaning.split())]
+    return _table_row([f"`{declaration}`", " ".join(meaning.split())])
+
+
+def _table_row(cells: list[str]) -> str:
+    """A Markdown table row, the pipes inside its cells escaped."""
     return "| " + " | ".join(cell.replace("|", "\\|") for cell in cells) + " |"
 
 
