@@ -120,6 +120,10 @@ class _Contact:
     def _contact_impulse(self, s: ti.i32, n: ti.i32):
         """The impulse of each particle taking part, from the updated grid velocity (grid_v_out) at
         its position in slot s, into `impulse`."""
+        self._contact_impulse_loop(s, n)
+
+    @ti.func
+    def _contact_impulse_loop(self, s, n):
         for p in range(n):
             if self.in_contact[p] > 0:
                 nrm, phi = self._surface_at(p, s)
@@ -138,6 +142,10 @@ class _Contact:
         """The spring contact's impulse of each particle taking part (see `SPRING`), from the updated
         grid velocity at its position in slot s, into `impulse`; its tangential spring from slot s
         into slot so (zero where it takes no part or the contact carries no load)."""
+        self._spring_impulse_loop(s, so, n)
+
+    @ti.func
+    def _spring_impulse_loop(self, s, so, n):
         for p in range(n):
             u = ti.Vector.zero(float, 3)
             if self.in_contact[p] > 0:
@@ -170,6 +178,10 @@ class _Contact:
     @ti.kernel
     def _contact_scatter(self, s: ti.i32, n: ti.i32, sign: float):
         """Add sign times each impulse to its nodes' velocities (w j / M_i); sign -1 takes it back."""
+        self._contact_scatter_loop(s, n, sign)
+
+    @ti.func
+    def _contact_scatter_loop(self, s, n, sign):
         for p in range(n):
             if self.in_contact[p] > 0:
                 node, fx, w = self._stencil(p, s)

@@ -29,6 +29,10 @@ class _Grid:
 
     @ti.kernel
     def _clear_grid(self):
+        self._clear_grid_loop()
+
+    @ti.func
+    def _clear_grid_loop(self):
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             I = self._node(b, i, j, k)
@@ -44,6 +48,10 @@ class _Grid:
         """Sum the private grids, and leave them zero for their next use: into the grid's momentum and
         mass (and momentum before forces) after p2g, or into grid_v_out's (and grid_v_old's) gradient
         after g2p's adjoint."""
+        self._sum_copies_loop(adjoint)
+
+    @ti.func
+    def _sum_copies_loop(self, adjoint: ti.template()):
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             I = self._node(b, i, j, k)
@@ -129,6 +137,10 @@ class _Grid:
 
     @ti.kernel
     def _grid_op(self):
+        self._grid_op_loop()
+
+    @ti.func
+    def _grid_op_loop(self):
         bc = ti.static(self.boundary_cells)
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):

@@ -15,7 +15,11 @@ One substep (`Simulator._substep`; the kernels live in the modules named):
     g2p      -> gather v and C; x <- x + dt v (with `scene.flip` or `scene.pic_time`, a FLIP
                 share) [transfer]
 
-and its reverse (`Simulator._substep_grad`): the grid kept from the segment's recompute, then
+Where p2g computes the stress and no grid is kept for a reverse pass (a forward step of an elastic
+scene), the whole substep is one kernel launch (`_forward_substep` in storage): each stage is a
+loop function that its own kernel also calls, so both paths run the same arithmetic.
+
+And its reverse (`Simulator._substep_grad`): the grid kept from the segment's recompute, then
 g2p's, the contact's, grid_op's, p2g's and the stress's adjoints. `rollout` stores checkpoints,
 `backward` recomputes each segment from its checkpoint and runs the substeps' reverses.
 """
@@ -465,6 +469,9 @@ class Simulator:
         """One substep from slot s into slot so, holding action row t; j: the substep's index within
         its control step (a batch member whose step is larger sits out the last ones). `keep_grid`:
         store the grid for the reverse pass (record s of the segment)."""
+        if not keep_grid and not self.k.separate_stress:  # the whole substep in one launch
+            self.k._forward_substep(s, so, t, self.n, j, self.scene.grid_region == "full")
+            return
         self._grid_update(s, so, t, j)
         if keep_grid:
             self.k._store_grid(s, self._grid_store, self._grid_boxes)

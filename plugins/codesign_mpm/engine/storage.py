@@ -189,6 +189,31 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
             self.contact_damping = scalar(())
         self._tree = builder.finalize()
 
+    @ti.kernel
+    def _forward_substep(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32, j: ti.i32, full_grid: ti.template()):
+        """One substep of a layout whose stress p2g computes, from slot s into slot so, in one launch:
+        each stage's loop runs after the one before as the separate kernels would (the same
+        arithmetic in the same order), without a launch and a return to Python each (issue 48)."""
+        if ti.static(full_grid):
+            for d in ti.static(range(3)):
+                self.lo[d][None] = 0
+                self.hi[d][None] = self.grid_shape[d]
+        else:
+            self._bounds_loop(s, n)
+        if ti.static(not self.private_scatter):
+            self._clear_grid_loop()
+        self._p2g_loop(s, so, t, n, j)
+        if ti.static(self.private_scatter):
+            self._sum_copies_loop(False)
+        self._grid_op_loop()
+        if ti.static(self.contact_memory):
+            self._spring_impulse_loop(s, so, n)
+        elif ti.static(self.surface_contact):
+            self._contact_impulse_loop(s, n)
+        if ti.static(self.surface_contact):
+            self._contact_scatter_loop(s, n, 1.0)
+        self._g2p_loop(s, so, n, j)
+
     def free(self) -> None:
         """Give the fields' memory back; the storage is unusable afterwards."""
         self._tree.destroy()

@@ -83,6 +83,10 @@ class _Transfers:
     def _bounds(self, s: ti.i32, n: ti.i32):
         """The node box the particles touch, in their own scene's grid coordinates: a batch's grid
         kernels visit that box in every member's grid, not the span of all members."""
+        self._bounds_loop(s, n)
+
+    @ti.func
+    def _bounds_loop(self, s, n):
         for d in ti.static(range(3)):
             self.lo[d][None] = self.grid_shape[d]
             self.hi[d][None] = 0
@@ -271,6 +275,10 @@ class _Transfers:
 
     @ti.kernel
     def _p2g(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32, j: ti.i32):
+        self._p2g_loop(s, so, t, n, j)
+
+    @ti.func
+    def _p2g_loop(self, s, so, t, n, j):
         if ti.static(self.private_scatter):
             for c in range(self.copies):  # one chunk of particles per thread, each into its own grid
                 for p in range(c * n // self.copies, (c + 1) * n // self.copies):
@@ -392,6 +400,10 @@ class _Transfers:
 
     @ti.kernel
     def _g2p(self, s: ti.i32, so: ti.i32, n: ti.i32, j: ti.i32):
+        self._g2p_loop(s, so, n, j)
+
+    @ti.func
+    def _g2p_loop(self, s, so, n, j):
         for p in range(n):
             if ti.static(self.batched):
                 if self._active(p, j):
