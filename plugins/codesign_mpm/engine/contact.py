@@ -120,75 +120,75 @@ class _Contact:
     def _contact_impulse(self, s: ti.i32, n: ti.i32):
         """The impulse of each particle taking part, from the updated grid velocity (grid_v_out) at
         its position in slot s, into `impulse`."""
-        self._contact_impulse_loop(s, n)
+        for p in range(n):
+            self._contact_impulse_of(p, s)
 
     @ti.func
-    def _contact_impulse_loop(self, s, n):
-        for p in range(n):
-            if self.in_contact[p] > 0:
-                nrm, phi = self._surface_at(p, s)
-                dt = self._dt(p)
-                allowed = ti.select(phi > 0, -phi / dt, -PUSH_OUT * phi / dt)  # the normal velocity it may have
-                v, m_split = self._grid_at(p, s)
-                vn = v.dot(nrm)
-                jn = ti.max(0.0, m_split * (allowed - vn))
-                vt = v - vn * nrm
-                vt_norm = ti.sqrt(vt.dot(vt) + 1e-30)
-                jt = ti.min(m_split * vt_norm, self.friction[None] * jn)
-                self.impulse[p] = jn * nrm - (jt / vt_norm) * vt
+    def _contact_impulse_of(self, p, s):
+        if self.in_contact[p] > 0:
+            nrm, phi = self._surface_at(p, s)
+            dt = self._dt(p)
+            allowed = ti.select(phi > 0, -phi / dt, -PUSH_OUT * phi / dt)  # the normal velocity it may have
+            v, m_split = self._grid_at(p, s)
+            vn = v.dot(nrm)
+            jn = ti.max(0.0, m_split * (allowed - vn))
+            vt = v - vn * nrm
+            vt_norm = ti.sqrt(vt.dot(vt) + 1e-30)
+            jt = ti.min(m_split * vt_norm, self.friction[None] * jn)
+            self.impulse[p] = jn * nrm - (jt / vt_norm) * vt
 
     @ti.kernel
     def _spring_impulse(self, s: ti.i32, so: ti.i32, n: ti.i32):
         """The spring contact's impulse of each particle taking part (see `SPRING`), from the updated
         grid velocity at its position in slot s, into `impulse`; its tangential spring from slot s
         into slot so (zero where it takes no part or the contact carries no load)."""
-        self._spring_impulse_loop(s, so, n)
+        for p in range(n):
+            self._spring_impulse_of(p, s, so)
 
     @ti.func
-    def _spring_impulse_loop(self, s, so, n):
-        for p in range(n):
-            u = ti.Vector.zero(float, 3)
-            if self.in_contact[p] > 0:
-                nrm, phi = self._surface_at(p, s)
-                dt = self._dt(p)
-                v, m = self._grid_at(p, s)
-                k = self.contact_stiffness[None] * ti.pow(self.vol[p], 2.0 / 3.0)  # its share of the area
-                c = 2.0 * self.contact_damping[None] * ti.sqrt(k * m)
-                implicit = 1.0 + dt * c / m + dt * dt * k / m
-                gap = phi - 0.5 * ti.pow(self.vol[p], 1.0 / 3.0)  # its lowest point above the surface
-                vn = v.dot(nrm)
-                jn = ti.max(0.0, m * (vn - dt * k / m * gap) / implicit - m * vn)
-                jn = ti.select(gap + dt * (vn + jn / m) < 0, jn, 0.0)  # touching at the substep's end; no pull
-                vt = v - vn * nrm
-                held = self.u[s, p]
-                length = ti.sqrt(held.dot(held) + 1e-30)
-                held -= held.dot(nrm) * nrm  # into the current tangent plane, its length kept
-                held *= length / ti.sqrt(held.dot(held) + 1e-30)
-                jt = m * (vt - dt * k / m * held) / implicit - m * vt
-                cap = self.friction[None] * jn
-                jt_norm = ti.sqrt(jt.dot(jt) + 1e-30)
-                if jt_norm > cap:  # slip: friction at Coulomb's bound, the spring stretched to it
-                    jt *= cap / jt_norm
-                    u = -jt / (dt * k)
-                else:  # stick: the spring follows the contact point
-                    u = held + dt * (vt + jt / m)
-                self.impulse[p] = jn * nrm + jt
-            self.u[so, p] = u
+    def _spring_impulse_of(self, p, s, so):
+        u = ti.Vector.zero(float, 3)
+        if self.in_contact[p] > 0:
+            nrm, phi = self._surface_at(p, s)
+            dt = self._dt(p)
+            v, m = self._grid_at(p, s)
+            k = self.contact_stiffness[None] * ti.pow(self.vol[p], 2.0 / 3.0)  # its share of the area
+            c = 2.0 * self.contact_damping[None] * ti.sqrt(k * m)
+            implicit = 1.0 + dt * c / m + dt * dt * k / m
+            gap = phi - 0.5 * ti.pow(self.vol[p], 1.0 / 3.0)  # its lowest point above the surface
+            vn = v.dot(nrm)
+            jn = ti.max(0.0, m * (vn - dt * k / m * gap) / implicit - m * vn)
+            jn = ti.select(gap + dt * (vn + jn / m) < 0, jn, 0.0)  # touching at the substep's end; no pull
+            vt = v - vn * nrm
+            held = self.u[s, p]
+            length = ti.sqrt(held.dot(held) + 1e-30)
+            held -= held.dot(nrm) * nrm  # into the current tangent plane, its length kept
+            held *= length / ti.sqrt(held.dot(held) + 1e-30)
+            jt = m * (vt - dt * k / m * held) / implicit - m * vt
+            cap = self.friction[None] * jn
+            jt_norm = ti.sqrt(jt.dot(jt) + 1e-30)
+            if jt_norm > cap:  # slip: friction at Coulomb's bound, the spring stretched to it
+                jt *= cap / jt_norm
+                u = -jt / (dt * k)
+            else:  # stick: the spring follows the contact point
+                u = held + dt * (vt + jt / m)
+            self.impulse[p] = jn * nrm + jt
+        self.u[so, p] = u
 
     @ti.kernel
     def _contact_scatter(self, s: ti.i32, n: ti.i32, sign: float):
         """Add sign times each impulse to its nodes' velocities (w j / M_i); sign -1 takes it back."""
-        self._contact_scatter_loop(s, n, sign)
+        for p in range(n):
+            self._contact_scatter_of(p, s, sign)
 
     @ti.func
-    def _contact_scatter_loop(self, s, n, sign):
-        for p in range(n):
-            if self.in_contact[p] > 0:
-                node, fx, w = self._stencil(p, s)
-                j = sign * self.impulse[p]
-                for i, k, l in ti.static(ti.ndrange(3, 3, 3)):
-                    I = node + ti.Vector([i, k, l])
-                    self.grid_v_out[I] += (w[i][0] * w[k][1] * w[l][2] / ti.max(self.grid_m[I], MASS_EPS)) * j
+    def _contact_scatter_of(self, p, s, sign):
+        if self.in_contact[p] > 0:
+            node, fx, w = self._stencil(p, s)
+            j = sign * self.impulse[p]
+            for i, k, l in ti.static(ti.ndrange(3, 3, 3)):
+                I = node + ti.Vector([i, k, l])
+                self.grid_v_out[I] += (w[i][0] * w[k][1] * w[l][2] / ti.max(self.grid_m[I], MASS_EPS)) * j
 
     @ti.kernel
     def _clear_impulse_grad(self, n: ti.i32):

@@ -137,44 +137,45 @@ class _Grid:
 
     @ti.kernel
     def _grid_op(self):
-        self._grid_op_loop()
-
-    @ti.func
-    def _grid_op_loop(self):
-        bc = ti.static(self.boundary_cells)
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
-            I = self._node(b, i, j, k)
-            dt, dx, mu = self.dt[None], self.dx[None], self.friction[None]
-            local = ti.Vector([i, j, k])  # the node's index in its own scene's grid
-            if ti.static(self.batched):
-                dt = self.member_dt[b]
-            m = self.grid_m[I]
-            v = ti.Vector.zero(float, 3)
-            v_old = ti.Vector.zero(float, 3)
-            if m > MASS_EPS:
-                if ti.static(self.has_flip):
-                    v_old = self.grid_q[I] / m
-                v = self.grid_v_in[I] / m + dt * self.gravity[None]
-                if ti.static(self.has_terrain):
-                    nrm = self.normal[local[0], local[2]]
-                    below = 0.0  # how deep below the surface a node is held whole
-                    if ti.static(self.surface_contact):
-                        below = BACKSTOP * dx
-                    if (ti.cast(I[1], float) * dx - self.height[local[0], local[2]]) * nrm[1] < -below:
-                        vn = v.dot(nrm)
-                        if vn < 0:
-                            vt = v - vn * nrm
-                            vt_norm = ti.sqrt(vt.dot(vt) + 1e-30)
-                            if vt_norm <= -mu * vn:
-                                v = ti.Vector.zero(float, 3)
-                            else:
-                                v = vt * (1.0 + mu * vn / vt_norm)
-                # walls: no outward velocity near the domain edge (branch-free: a component assigned
-                # in a branch becomes an uninitialised load in Taichi's reverse mode)
-                top = ti.Vector([self.grid_shape[0], self.grid_shape[1], self.grid_shape[2]]) - 1 - bc
-                blocked = ((local < bc) & (v < 0)) | ((local > top) & (v > 0))
-                v = ti.select(blocked, 0.0, v)
-            self.grid_v_out[I] = v
+            self._grid_op_at(b, i, j, k)
+
+    @ti.func
+    def _grid_op_at(self, b, i, j, k):
+        """Node (i, j, k) of member b: velocity from momentum, gravity, the terrain, the walls."""
+        bc = ti.static(self.boundary_cells)
+        I = self._node(b, i, j, k)
+        dt, dx, mu = self.dt[None], self.dx[None], self.friction[None]
+        local = ti.Vector([i, j, k])  # the node's index in its own scene's grid
+        if ti.static(self.batched):
+            dt = self.member_dt[b]
+        m = self.grid_m[I]
+        v = ti.Vector.zero(float, 3)
+        v_old = ti.Vector.zero(float, 3)
+        if m > MASS_EPS:
             if ti.static(self.has_flip):
-                self.grid_v_old[I] = v_old
+                v_old = self.grid_q[I] / m
+            v = self.grid_v_in[I] / m + dt * self.gravity[None]
+            if ti.static(self.has_terrain):
+                nrm = self.normal[local[0], local[2]]
+                below = 0.0  # how deep below the surface a node is held whole
+                if ti.static(self.surface_contact):
+                    below = BACKSTOP * dx
+                if (ti.cast(I[1], float) * dx - self.height[local[0], local[2]]) * nrm[1] < -below:
+                    vn = v.dot(nrm)
+                    if vn < 0:
+                        vt = v - vn * nrm
+                        vt_norm = ti.sqrt(vt.dot(vt) + 1e-30)
+                        if vt_norm <= -mu * vn:
+                            v = ti.Vector.zero(float, 3)
+                        else:
+                            v = vt * (1.0 + mu * vn / vt_norm)
+            # walls: no outward velocity near the domain edge (branch-free: a component assigned
+            # in a branch becomes an uninitialised load in Taichi's reverse mode)
+            top = ti.Vector([self.grid_shape[0], self.grid_shape[1], self.grid_shape[2]]) - 1 - bc
+            blocked = ((local < bc) & (v < 0)) | ((local > top) & (v > 0))
+            v = ti.select(blocked, 0.0, v)
+        self.grid_v_out[I] = v
+        if ti.static(self.has_flip):
+            self.grid_v_old[I] = v_old

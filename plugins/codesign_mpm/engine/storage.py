@@ -192,8 +192,10 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
     @ti.kernel
     def _forward_substep(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32, j: ti.i32, full_grid: ti.template()):
         """One substep of a layout whose stress p2g computes, from slot s into slot so, in one launch:
-        each stage's loop runs after the one before as the separate kernels would (the same
-        arithmetic in the same order), without a launch and a return to Python each (issue 48)."""
+        each stage's loop runs after the one before as the separate kernels would, over the same
+        per-particle or per-node functions (the same arithmetic in the same order), without a
+        launch and a return to Python each (issue 48). The kernels that Taichi differentiates
+        (grid_op, the contact's) keep their loops in the kernel itself, as its reverse mode needs."""
         if ti.static(full_grid):
             for d in ti.static(range(3)):
                 self.lo[d][None] = 0
@@ -205,13 +207,17 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         self._p2g_loop(s, so, t, n, j)
         if ti.static(self.private_scatter):
             self._sum_copies_loop(False)
-        self._grid_op_loop()
-        if ti.static(self.contact_memory):
-            self._spring_impulse_loop(s, so, n)
-        elif ti.static(self.surface_contact):
-            self._contact_impulse_loop(s, n)
+        for b, i, k, l in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
+                                     (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
+            self._grid_op_at(b, i, k, l)
         if ti.static(self.surface_contact):
-            self._contact_scatter_loop(s, n, 1.0)
+            for p in range(n):
+                if ti.static(self.contact_memory):
+                    self._spring_impulse_of(p, s, so)
+                else:
+                    self._contact_impulse_of(p, s)
+            for p in range(n):
+                self._contact_scatter_of(p, s, 1.0)
         self._g2p_loop(s, so, n, j)
 
     def free(self) -> None:
