@@ -1,6 +1,7 @@
 """Optimizers on the physics-free toy environment: CMA-ES improves, every optimizer resumes
 exactly, bad settings fail before any simulation, and `codesign eval` replays the best."""
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -94,6 +95,7 @@ def test_a_mode_the_parts_cannot_do_fails_before_any_episode(tmp_path, optimizer
 def test_eval_of_a_run_without_a_best_says_so(tmp_path):
     run_dir = runner.run(resolve_recipe({**TOY_CMA, "optimizer": {"name": "evaluate"}}), run_dir=tmp_path / "r",
                          progress=False)
+    shutil.rmtree(run_dir / "best")  # as a run stopped before its first episode ended
     with pytest.raises(CodesignError, match="saved no best design"):
         runner.evaluate_best(run_dir)
 

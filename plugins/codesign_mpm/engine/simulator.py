@@ -16,8 +16,9 @@ One substep (`Simulator._substep`; the kernels live in the modules named):
                 share) [transfer]
 
 Where p2g computes the stress and no grid is kept for a reverse pass (a forward step of an elastic
-scene), the whole substep is one kernel launch (`_forward_substep` in storage): each stage is a
-loop function that its own kernel also calls, so both paths run the same arithmetic.
+scene), the whole substep is one kernel launch (`_forward_substep` in storage): its loops run the
+same per-particle and per-node functions as the stages' own kernels, so both paths give bitwise
+the same states.
 
 And its reverse (`Simulator._substep_grad`): the grid kept from the segment's recompute, then
 g2p's, the contact's, grid_op's, p2g's and the stress's adjoints. `rollout` stores checkpoints,
