@@ -170,6 +170,27 @@ def save_best(run_dir: Path, design: DesignFields, points: np.ndarray, controlle
     (Path(run_dir) / BEST_INFO).write_text(json.dumps(info, indent=2, default=float) + "\n", encoding="utf-8")
 
 
+class BestKeeper:
+    """Remembers the best return so far and writes its design and controller to run_dir/best."""
+
+    def __init__(self, environment: Environment, controller: Controller, run_dir: Path | None) -> None:
+        self.environment, self.controller, self.run_dir = environment, controller, run_dir
+        self.best_return = -math.inf
+
+    def offer(self, episode_return: float, design: DesignFields, record: EpisodeRecord | None, iteration: int,
+              controller: Controller | None = None) -> bool:
+        """Keep this episode if it beats the best so far: its `controller` (default: the shared one,
+        so call before its parameters change) and design."""
+        if not episode_return > self.best_return:
+            return False
+        self.best_return = episode_return
+        if self.run_dir is not None:
+            save_best(Path(self.run_dir), design, self.environment.design_space.points, controller or self.controller,
+                      record, {"iteration": iteration, "episode_return": episode_return,
+                               **(record.metrics if record is not None else {})})
+        return True
+
+
 PALETTE = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
                     [140, 86, 75], [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207]], dtype=np.uint8)
 """Muscle group colours (matplotlib's tab10), repeated beyond ten groups."""

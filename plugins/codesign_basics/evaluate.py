@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from codesign.artifacts import play, save_best
+from codesign.artifacts import BestKeeper, play
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
 from codesign_basics.config import EvaluateConfig
 
@@ -24,7 +24,6 @@ class Evaluate(Optimizer):
         self.config = config
         self.iterations = config.episodes
         self.episode = 0
-        self.best_return = -float("inf")
 
     def setup(
         self,
@@ -40,6 +39,7 @@ class Evaluate(Optimizer):
         self.controller = controller
         self.rng = rng
         self.run_dir = run_dir
+        self.best = BestKeeper(environment, controller, run_dir)
 
     def step(self) -> dict[str, float]:
         design = self.representation()
@@ -47,10 +47,7 @@ class Evaluate(Optimizer):
         if self.run_dir is not None:
             np.savez_compressed(Path(self.run_dir) / f"trajectory-{self.episode}.npz", com=record.com,
                                 actions=record.actions, episode_return=record.episode_return)
-            if record.episode_return > self.best_return:
-                save_best(Path(self.run_dir), design, self.environment.design_space.points, self.controller, record,
-                          {"iteration": self.episode, "episode_return": record.episode_return, **record.metrics})
-        self.best_return = max(self.best_return, record.episode_return)
+        self.best.offer(record.episode_return, design, record, self.episode)
         self.episode += 1
         return {
             "episode_return": record.episode_return,
@@ -60,8 +57,8 @@ class Evaluate(Optimizer):
         }
 
     def state_dict(self) -> dict:
-        return {"episode": self.episode, "best_return": self.best_return}
+        return {"episode": self.episode, "best_return": self.best.best_return}
 
     def load_state_dict(self, state: dict) -> None:
         self.episode = state["episode"]
-        self.best_return = state.get("best_return", -float("inf"))
+        self.best.best_return = state.get("best_return", -float("inf"))  # checkpoints before it kept none

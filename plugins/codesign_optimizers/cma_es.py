@@ -9,10 +9,10 @@ import numpy as np
 import torch
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
-from codesign.artifacts import EpisodeRecord, play_population
+from codesign.artifacts import BestKeeper, EpisodeRecord, play_population
 from codesign.errors import DesignError, RecipeError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
-from codesign_optimizers.common import BestKeeper, candidate, fewest_to_tell, parameter_groups
+from codesign_optimizers.common import candidate, fewest_to_tell, parameter_groups
 from codesign_optimizers.config import CMAESConfig
 
 ASK_ROUNDS = 5

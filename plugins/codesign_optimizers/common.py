@@ -1,18 +1,17 @@
-"""What every optimizer here shares: parameter groups by mode, and keeping the best."""
+"""What every optimizer here shares: parameter groups by mode and candidates as frozen copies
+(keeping the best is `codesign.artifacts.BestKeeper`, which `evaluate` shares too)."""
 
 from __future__ import annotations
 
 import copy
-import math
-from pathlib import Path
 
 import numpy as np
 import torch
 from torch.nn.utils import vector_to_parameters
 
-from codesign.artifacts import EpisodeRecord, save_best, to_numpy
+from codesign.artifacts import to_numpy
 from codesign.errors import RecipeError
-from codesign.interfaces import Controller, DesignFields, Environment, Representation
+from codesign.interfaces import Controller, DesignFields, Representation
 
 
 def parameter_groups(mode: str, representation: Representation, controller: Controller,
@@ -30,27 +29,6 @@ def parameter_groups(mode: str, representation: Representation, controller: Cont
                                   f"{kind} '{type(part).__name__}' has no trainable parameters")
             groups[name] = params
     return groups
-
-
-class BestKeeper:
-    """Remembers the best return so far and writes its design and controller to run_dir/best."""
-
-    def __init__(self, environment: Environment, controller: Controller, run_dir: Path | None) -> None:
-        self.environment, self.controller, self.run_dir = environment, controller, run_dir
-        self.best_return = -math.inf
-
-    def offer(self, episode_return: float, design: DesignFields, record: EpisodeRecord | None, iteration: int,
-              controller: Controller | None = None) -> bool:
-        """Keep this episode if it beats the best so far: its `controller` (default: the shared one,
-        so call before its parameters change) and design."""
-        if not episode_return > self.best_return:
-            return False
-        self.best_return = episode_return
-        if self.run_dir is not None:
-            save_best(Path(self.run_dir), design, self.environment.design_space.points, controller or self.controller,
-                      record, {"iteration": iteration, "episode_return": episode_return,
-                               **(record.metrics if record is not None else {})})
-        return True
 
 
 def frozen_design(representation: Representation) -> DesignFields:

@@ -16,10 +16,10 @@ import numpy as np
 import torch
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
-from codesign.artifacts import BEST, EpisodeRecord, play_population
+from codesign.artifacts import BEST, BestKeeper, EpisodeRecord, play_population
 from codesign.errors import RecipeError
 from codesign.interfaces import Controller, DesignFields, DesignSpace, Environment, Optimizer, Representation
-from codesign_optimizers.common import BestKeeper, candidate, fewest_to_tell, frozen_design, parameter_groups
+from codesign_optimizers.common import candidate, fewest_to_tell, frozen_design, parameter_groups
 from codesign_optimizers.config import CPPNNEATConfig
 
 GENOME_FILE = "genome.pkl"

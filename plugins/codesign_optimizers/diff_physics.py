@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from codesign.artifacts import EpisodeRecord
+from codesign.artifacts import BestKeeper, EpisodeRecord
 from codesign.errors import CodesignError, DesignError, RecipeError
 from codesign.interfaces import Controller, Environment, Optimizer, Representation
-from codesign_optimizers.common import BestKeeper, parameter_groups
+from codesign_optimizers.common import parameter_groups
 from codesign_optimizers.config import DiffPhysicsConfig
 
 

@@ -40,10 +40,10 @@ from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
-from codesign.artifacts import play
+from codesign.artifacts import BestKeeper, play
 from codesign.errors import RecipeError
 from codesign.interfaces import Controller, DesignFields, Environment, Optimizer, Representation
-from codesign_optimizers.common import BestKeeper, parameter_groups
+from codesign_optimizers.common import parameter_groups
 from codesign_optimizers.config import PPOConfig
 
 LOSSES = ("policy_gradient_loss", "value_loss", "entropy_loss", "approx_kl", "clip_fraction", "explained_variance",
