@@ -10,7 +10,6 @@ docs/log/contact.md section 27 reads them.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np

@@ -10,7 +10,6 @@ the gradients at cfl and cfl / 4 and at cfl / 4 and cfl / 16, per parameter grou
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -19,7 +18,7 @@ import torch
 from contact_steps import FACTORS, SETTINGS, emit
 
 from codesign.recipe import load_recipe
-from codesign.runner import build_parts
+from codesign.runner import set_up_parts
 from codesign_optimizers.common import parameter_groups
 
 
@@ -27,20 +26,13 @@ def gradients(recipe: Path, seed: int, cfl: float, contact: str, pic_time: float
     """The episode's return and its gradient per parameter group (flattened) at `cfl`."""
     overrides = [f"seed={seed}", f"environment.cfl={cfl}", f"environment.terrain.contact={contact}",
                  f"environment.pic_time={'null' if pic_time is None else pic_time}"]
-    parts = build_parts(load_recipe(recipe, overrides))
-    env = parts.environment
-    try:
-        rng = np.random.default_rng(seed)
-        parts.representation.setup(env.design_space, rng)
-        parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
+    with set_up_parts(load_recipe(recipe, overrides)) as (parts, _):
         groups = parameter_groups("both", parts.representation, parts.controller)
-        episode = env.differentiable_episode(parts.representation(), parts.controller)
+        episode = parts.environment.differentiable_episode(parts.representation(), parts.controller)
         episode.loss.backward()
         flat = {name: torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).flatten()
                                  for p in params]).double().numpy() for name, params in groups.items()}
         return episode.episode_return, flat
-    finally:
-        env.close()
 
 
 def cosine(a: np.ndarray, b: np.ndarray) -> float:

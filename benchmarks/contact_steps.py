@@ -26,7 +26,7 @@ from omegaconf import OmegaConf
 
 from codesign.artifacts import play
 from codesign.recipe import load_recipe
-from codesign.runner import build_parts, replay_best
+from codesign.runner import replay_best, set_up_parts
 from codesign_mpm import BodySpec, Scene, ShapeSpec, TerrainSpec, build_particles
 from codesign_mpm.accuracy import Setting, gait, gait_distance, robot_env
 from codesign_mpm.engine import Simulator
@@ -56,15 +56,8 @@ def random_gait(recipe: Path, seed: int, dx: float, cfl: float, contact: str, pi
                  f"environment.cfl={cfl}", f"environment.flip={flip}",
                  f"environment.pic_time={'null' if pic_time is None else pic_time}",
                  f"environment.terrain.contact={contact}", *(f"environment.terrain.{k}={v}" for k, v in terrain.items())]
-    parts = build_parts(load_recipe(recipe, overrides))
-    try:
-        rng = np.random.default_rng(seed)
-        env = parts.environment
-        parts.representation.setup(env.design_space, rng)
-        parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
-        return play(env, parts.representation(), parts.controller, seed=0).episode_return
-    finally:
-        env.close()
+    with set_up_parts(load_recipe(recipe, overrides)) as (parts, _):
+        return play(parts.environment, parts.representation(), parts.controller, seed=0).episode_return
 
 
 def rebound(cfl: float, contact: str, pic_time: float | None, terrain: dict, flip: float) -> float:

@@ -10,37 +10,34 @@ the same minutes) and compare the ratios:
 """
 from __future__ import annotations
 
+import argparse
 import json
-import sys
 import time
 
 import numpy as np
 
 from codesign.artifacts import play
 from codesign.recipe import load_recipe
-from codesign.runner import build_parts
+from codesign.runner import set_up_parts
 from codesign_mpm.bench import Case, measure_forward
 
 
 def quickstart_episode_s(repeats: int = 7) -> float:
-    parts = build_parts(load_recipe("recipes/quickstart.yaml", []))
-    env = parts.environment
-    rng = np.random.default_rng(0)
-    parts.representation.setup(env.design_space, rng)
-    parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
-    design = parts.representation()
-    play(env, design, parts.controller, seed=0)  # compiles (or loads from the offline cache)
-    times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        play(env, design, parts.controller, seed=0)
-        times.append(time.perf_counter() - started)
-    env.close()
+    with set_up_parts(load_recipe("recipes/quickstart.yaml", [])) as (parts, _):
+        env, design = parts.environment, parts.representation()
+        play(env, design, parts.controller, seed=0)  # compiles (or loads from the offline cache)
+        times = []
+        for _ in range(repeats):
+            started = time.perf_counter()
+            play(env, design, parts.controller, seed=0)
+            times.append(time.perf_counter() - started)
     return float(np.median(times))
 
 
 def main() -> None:
-    record = {"variant": sys.argv[1] if len(sys.argv) > 1 else "this checkout"}
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("variant", nargs="?", default="this checkout", help="the label of this checkout's line")
+    record = {"variant": parser.parse_args().variant}
     for scale, frames in (("tiny", 40), ("small", 10)):
         record[scale] = measure_forward(Case(scale, "float32"), repeats=9, frames=frames)["particle_substeps_per_s"]
     record["quickstart_episode_s"] = quickstart_episode_s()

@@ -234,6 +234,22 @@ def load_run_data(run_dir: str | Path) -> tuple[dict, ResolvedRecipe]:
 
 
 @contextmanager
+def set_up_parts(recipe: ResolvedRecipe) -> Iterator[tuple[Parts, np.random.Generator]]:
+    """A recipe's parts built and set up from its seed, as a run sets them up before its optimizer
+    (the representation's and the controller's starting parameters); yields (parts, the run's
+    generator) and closes the environment."""
+    parts = build_parts(recipe)
+    try:
+        rng = seed_everything(recipe.seed)
+        env = parts.environment
+        parts.representation.setup(env.design_space, rng)
+        parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
+        yield parts, rng
+    finally:
+        parts.environment.close()
+
+
+@contextmanager
 def _set_up_parts(run_dir: str | Path, overrides: dict | None = None
                   ) -> Iterator[tuple[Parts, ResolvedRecipe, np.random.Generator]]:
     """The run's parts rebuilt from its config (with `overrides` merged in) and set up from its seed
@@ -242,15 +258,8 @@ def _set_up_parts(run_dir: str | Path, overrides: dict | None = None
     if overrides:
         recipe = resolve_recipe(OmegaConf.to_container(OmegaConf.merge(OmegaConf.create(data),
                                                                        OmegaConf.create(overrides)), resolve=False))
-    parts = build_parts(recipe)
-    try:
-        rng = seed_everything(recipe.seed)
-        env = parts.environment
-        parts.representation.setup(env.design_space, rng)
-        parts.controller.setup(env.action_dim, env.observation_dim, env.control_dt, rng)
+    with set_up_parts(recipe) as (parts, rng):
         yield parts, recipe, rng
-    finally:
-        parts.environment.close()
 
 
 @contextmanager
