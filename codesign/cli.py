@@ -121,6 +121,11 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
                                                             "docs/data/studies/. An analysis reports from its points "
                                                             "(the committed ones where none are here), measuring only "
                                                             "those they lack."),
+        backend: Optional[str] = typer.Option(None, "--backend", help="local (the default: one run after another) "
+                                                                       "or ray (every arm's runs at once as Ray tasks)."),
+        ray_address: Optional[str] = typer.Option(
+            None, "--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else a local instance)."
+        ),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
     ) -> None:
         """Run one of the paper's studies (every arm x seed, continuing a killed one) and print its table."""
@@ -133,7 +138,8 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
         else:  # an analysis reports by running: from the committed points (if none here), it measures nothing new
             if report and studies.seed_points(spec, directory):
                 _stderr.print(f"reporting the committed {studies.data_path(spec)}", markup=False, highlight=False)
-            directory = studies.run_study(spec, study_dir, progress=not no_progress)
+            directory = studies.run_study(spec, study_dir, progress=not no_progress, backend=backend,
+                                          ray_address=ray_address)
         if docs:
             _stderr.print(f"wrote {studies.publish(spec, directory)}", markup=False, highlight=False)
         _stderr.print((directory / "section.md").read_text(encoding="utf-8"), markup=False, highlight=False,

@@ -325,42 +325,99 @@ def study_dir(study: Study, directory: str | Path | None) -> Path:
     return Path(STUDIES_DIR) / f"{study.name}{suffix}"
 
 
-def run_study(study: Study, directory: str | Path | None = None, *, progress: bool = True) -> Path:
-    """Run every arm (an arm already under way or done is continued, not restarted); then tabulate."""
-    from codesign import runner, sweep as sweeps
-
+def run_study(study: Study, directory: str | Path | None = None, *, progress: bool = True,
+              backend: str | None = None, ray_address: str | None = None) -> Path:
+    """Run every arm (an arm already under way or done is continued, not restarted); then tabulate.
+    With `backend` "ray", every arm's runs at once as Ray tasks (see `_run_on_ray`)."""
+    if backend not in (None, "local", "ray"):
+        raise CodesignError(f"--backend {backend!r}: choose from local, ray")
     root = study_dir(study, directory)
     if study.analysis is not None:
+        if backend == "ray":
+            raise CodesignError(f"study {study.name} is an analysis (it measures points, not runs): "
+                                f"run it without --backend ray")
         findings = _analysis(study.analysis)(study, root, progress)
         (root / "section.md").write_text(_heading(study) + findings.rstrip() + "\n\n" + _data_line(study) + "\n"
                                          + _differs(study), encoding="utf-8")
         return root
-    recipes = [resolve_recipe(arm_recipe(study, arm, root), default_name=arm.slug) for arm in study.arms]  # all checked first
-    if study.prepare is not None:
-        prepared = root / PREPARE_DIR
-        if not sweeps.finished(prepared):
-            if progress:
-                print(f"[{study.name}] first: {study.prepare.label}", file=sys.stderr, flush=True)
-            if (prepared / runner.CONFIG_FILE).is_file():
-                runner.resume(prepared, progress=progress)
-            else:
-                runner.run(resolve_recipe(prepare_recipe(study)), run_dir=prepared, progress=progress)
+    for arm in study.arms:  # every arm checked before anything runs
+        resolve_recipe(arm_recipe(study, arm, root), default_name=arm.slug)
+    if backend == "ray":
+        _run_on_ray(study, root, ray_address, progress)
+    else:
+        _run_here(study, root, progress)
+    write_results(study, root)
+    return root
+
+
+def _run_here(study: Study, root: Path, progress: bool) -> None:
+    """The preparatory run, then arm after arm: its seeds, then its no-action episode."""
+    from codesign import sweep as sweeps
+
+    if study.prepare is not None and not sweeps.finished(root / PREPARE_DIR):
+        if progress:
+            print(f"[{study.name}] first: {study.prepare.label}", file=sys.stderr, flush=True)
+        sweeps.execute({**prepare_recipe(study), "run_dir": str(root / PREPARE_DIR)}, progress=progress)
     stills = still_dirs(study, root)
-    for i, (arm, recipe) in enumerate(zip(study.arms, recipes)):
+    for i, arm in enumerate(study.arms):
         arm_dir = root / arm.slug
         resume = (arm_dir / sweeps.SWEEP_FILE).is_file()
         if progress:
             print(f"[{study.name}] arm {i + 1}/{len(study.arms)}: {arm.label}"
                   + (" (continuing)" if resume else ""), file=sys.stderr, flush=True)
-        sweeps.run_sweep(recipe, sweep_dir=arm_dir, resume=resume, progress=progress)
-        still = stills[arm.slug]
-        if study.still and not sweeps.finished(still):
-            if (still / runner.CONFIG_FILE).is_file():
-                runner.resume(still, progress=progress)
-            else:
-                runner.run(resolve_recipe(still_recipe(study, arm)), run_dir=still, progress=progress)
-    write_results(study, root)
-    return root
+        _arm_sweep(arm_recipe(study, arm, root), arm_dir, resume, progress=progress)
+        if study.still and not sweeps.finished(stills[arm.slug]):
+            sweeps.execute({**still_recipe(study, arm), "run_dir": str(stills[arm.slug])}, progress=progress)
+
+
+def _arm_sweep(data: dict, arm_dir: Path, resume: bool, backend: str | None = None, progress: bool = False) -> None:
+    """One arm's sweep over its seeds (also as a Ray task, whose seeds are Ray tasks of their own)."""
+    from codesign import sweep as sweeps
+
+    sweeps.run_sweep(resolve_recipe(data), sweep_dir=arm_dir, resume=resume, backend=backend, progress=progress)
+
+
+def _run_on_ray(study: Study, root: Path, address: str | None, progress: bool) -> None:
+    """The preparatory run first (the arms it names start from it), then every arm's sweep at once,
+    each a Ray task holding no CPU whose seeds run as Ray tasks of one CPU (one GPU where the
+    cluster has them), and the no-action episodes beside them. `root` must be on a filesystem that
+    every node sees. A failed run stops nothing else; the finished runs are kept and a rerun
+    continues from them."""
+    from codesign import sweep as sweeps
+
+    ray = sweeps.connect_ray(address)
+    run = sweeps.run_task(ray)
+    if study.prepare is not None and not sweeps.finished(root / PREPARE_DIR):
+        if progress:
+            print(f"[{study.name}] first: {study.prepare.label} (Ray)", file=sys.stderr, flush=True)
+        ray.get(run.remote({**prepare_recipe(study), "run_dir": str(root / PREPARE_DIR)}))
+    arm_task = ray.remote(num_cpus=0)(_arm_sweep)
+    jobs = {}
+    for arm in study.arms:
+        arm_dir = root / arm.slug
+        jobs[arm_task.remote(arm_recipe(study, arm, root), arm_dir, (arm_dir / sweeps.SWEEP_FILE).is_file(),
+                             "ray")] = arm.label
+    if study.still:
+        for still, arm in {still_dirs(study, root)[arm.slug]: arm for arm in reversed(study.arms)}.items():
+            if not sweeps.finished(still):  # each played once, from the first arm that shares it
+                jobs[run.remote({**still_recipe(study, arm), "run_dir": str(still)})] = f"no action ({still.parent.name})"
+    if progress:
+        print(f"[{study.name}] {len(study.arms)} arms and {len(jobs) - len(study.arms)} no-action episodes "
+              f"on Ray", file=sys.stderr, flush=True)
+    errors = []
+    while jobs:
+        (ref,), _ = ray.wait(list(jobs), num_returns=1)
+        what = jobs.pop(ref)
+        try:
+            ray.get(ref)
+        except Exception as exc:  # the others go on; their runs are kept
+            errors.append(f"{what}: {type(exc).__name__}: {exc}")
+            continue
+        if progress:
+            print(f"[{study.name}] done: {what}", file=sys.stderr, flush=True)
+    if errors:
+        raise CodesignError(f"{len(errors)} part(s) of study {study.name} failed (the finished runs are kept; fix "
+                            f"the cause and run it again to continue):\n  " + "\n  ".join(errors))
 
 
 RUNS_FILE = "runs.jsonl"  # what the table is built from: a header line, then one line per finished run

@@ -239,18 +239,18 @@ def _apply(data: dict, values: Mapping[str, Any]) -> dict:
 # --- running ------------------------------------------------------------------------------------
 
 
-def execute(data: dict) -> str:
-    """Run one configuration and seed in ``data['run_dir']`` (also as a Ray task): continue a run
-    that was started (it has a config.yaml), else start it afresh; return the run directory."""
+def execute(data: dict, progress: bool = False) -> str:
+    """Run the recipe `data` in ``data['run_dir']`` (also as a Ray task): continue a run that was
+    started (it has a config.yaml), else start it afresh; return the run directory."""
     from codesign import runner
 
     run_dir = Path(data["run_dir"])
     if (run_dir / CONFIG_FILE).is_file():
-        runner.resume(run_dir, progress=False)
+        runner.resume(run_dir, progress=progress)
     else:
         if run_dir.exists():
             shutil.rmtree(run_dir)  # created, but killed before it held anything to continue from
-        runner.run(resolve_recipe(data), run_dir=run_dir, progress=False)
+        runner.run(resolve_recipe(data), run_dir=run_dir, progress=progress)
     return str(run_dir)
 
 
@@ -295,24 +295,38 @@ class LocalExecutor:
         return key, None
 
 
+def connect_ray(address: str | None) -> Any:
+    """Ray, joined to the cluster at `address` (None: ``RAY_ADDRESS``, else a local instance); an
+    already initialised Ray (a Ray worker's, or a test's) is used as it is. Started here, the job's
+    workers get this process's ``CODESIGN_*`` and ``WANDB_*`` variables (which plugins load, W&B's
+    mode and directories), which workers on other nodes would not inherit."""
+    try:
+        import ray
+    except ImportError:
+        raise CodesignError("the ray backend needs Ray: pip install 'codesign[ray]'") from None
+    if not ray.is_initialized():
+        env_vars = {k: v for k, v in os.environ.items() if k.startswith(("CODESIGN_", "WANDB_"))}
+        ray.init(address=address, runtime_env={"env_vars": env_vars})
+    return ray
+
+
+def run_task(ray: Any) -> Any:
+    """`execute` as a Ray task: one CPU, and one GPU where the cluster has GPUs (the run's recipe
+    chooses its device: `arch: cuda` uses the GPU Ray gives it)."""
+    gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0
+    return ray.remote(num_cpus=1, num_gpus=gpus)(execute)
+
+
 class RayExecutor:
-    """Runs each run as a Ray task (one CPU each) on the cluster at `address` (None: ``RAY_ADDRESS``,
-    else a local instance); an already initialised Ray is used as it is. The sweep directory must
-    be on a filesystem that every node sees (run directories are written there). Started here, the
-    job's workers get this process's ``CODESIGN_*`` and ``WANDB_*`` variables (which plugins load,
-    W&B's mode and directories), which workers on other nodes would not inherit."""
+    """Runs each run as a Ray task (`run_task`) on the cluster at `address` (see `connect_ray`). The
+    sweep directory must be on a filesystem that every node sees (run directories are written there)."""
 
     def __init__(self, address: str | None) -> None:
-        try:
-            import ray
-        except ImportError:
-            raise CodesignError("the ray backend needs Ray: pip install 'codesign[ray]'") from None
-        if not ray.is_initialized():
-            env_vars = {k: v for k, v in os.environ.items() if k.startswith(("CODESIGN_", "WANDB_"))}
-            ray.init(address=address, runtime_env={"env_vars": env_vars})
+        ray = connect_ray(address)
         self._ray = ray
-        self._task = ray.remote(num_cpus=1)(execute)
-        self.slots = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        self._task = run_task(ray)
+        resources = ray.cluster_resources()
+        self.slots = max(1, int(resources.get("GPU") or resources.get("CPU", 1)))
         self._refs: dict[Any, Any] = {}
 
     def submit(self, key: Any, data: dict) -> None:

@@ -1,5 +1,7 @@
 import copy
+import os
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -86,6 +88,18 @@ def wandb_offline(tmp_path, monkeypatch):
         monkeypatch.setenv(var, value)
     monkeypatch.delenv("WANDB_API_KEY", raising=False)
     monkeypatch.delenv("WANDB_MODE", raising=False)
+
+
+@pytest.fixture
+def local_ray(monkeypatch):
+    """A local Ray instance with two worker CPUs; its workers find the toy plugin like this process."""
+    import ray
+
+    tests = str(Path(__file__).resolve().parent)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [tests, os.environ.get("PYTHONPATH")])))
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
 
 
 @pytest.fixture

@@ -343,3 +343,26 @@ def test_an_analysis_reports_from_its_committed_points_where_its_directory_has_n
     assert (tmp_path / "run" / POINTS_FILE).read_text() == data_path(study).read_text()
     (tmp_path / "run" / POINTS_FILE).write_text("{}\n")  # points of its own are kept
     assert not seed_points(study, tmp_path / "run") and (tmp_path / "run" / POINTS_FILE).read_text() == "{}\n"
+
+
+def test_on_ray_a_study_runs_every_arm_at_once_to_the_same_runs_and_table(tmp_path, toy_study, local_ray, cli):
+    """`--backend ray`: the preparatory run first, then every arm's seeds and the no-action episodes
+    as Ray tasks; the records and the table are those of the same study run here, one run after another."""
+    data = yaml.safe_load(toy_study.read_text())
+    data["study"]["prepare"] = {"label": "a gait first", "set": {"optimizer.episodes": 2}, "arms": ["Tight bound"]}
+    toy_study.write_text(yaml.safe_dump(data))
+    here, there = tmp_path / "here", tmp_path / "ray"
+    assert cli("study", str(toy_study), "--dir", str(here), "--no-progress")[0] == 0
+    code, out, err = cli("study", str(toy_study), "--dir", str(there), "--backend", "ray", "--no-progress")
+    assert code == 0, err
+
+    def returns(root: Path) -> list:
+        _, records = read_records(root / "runs.jsonl")
+        return sorted((r["arm"], r.get("seed", -1), r.get("returns", r.get("still"))) for r in records)
+
+    assert returns(there) == returns(here) and len(returns(here)) == 6  # 2 arms x 2 seeds, a no-action episode each
+    assert (there / "prepare" / "summary.json").is_file()
+    table = [{k: v for k, v in row.items() if k != "wall_time"} for row in csv.DictReader((there / "table.csv").open())]
+    assert table == [{k: v for k, v in row.items() if k != "wall_time"} for row in csv.DictReader((here / "table.csv").open())]
+    code, _, err = cli("study", str(toy_study), "--dir", str(there), "--backend", "slurm")
+    assert code != 0 and "--backend 'slurm': choose from local, ray" in err

@@ -3,7 +3,6 @@ physics-free toy plugin: run directories, the summary over seeds, W&B groups, re
 import csv
 import json
 import math
-import os
 import statistics
 import struct
 from pathlib import Path
@@ -238,18 +237,6 @@ def test_mean_and_std_over_seeds_use_the_iterations_every_run_reached():
     iterations, mean, std = mean_and_std(runs, "r")
     assert (iterations, mean) == ([0, 1], [2.0, 3.0])
     assert std == pytest.approx([math.sqrt(2), math.sqrt(2)])
-
-
-@pytest.fixture
-def local_ray(monkeypatch):
-    """A local Ray instance with two worker CPUs; its workers find the toy plugin like this process."""
-    import ray
-
-    tests = str(Path(__file__).resolve().parent)
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [tests, os.environ.get("PYTHONPATH")])))
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
 
 
 def test_the_ray_backend_runs_the_same_sweep_to_the_same_runs_and_summary(tmp_path, sweep_recipe, local_ray):
