@@ -76,7 +76,7 @@ def _memoize_source_positions() -> None:
     with `textwrap`, underlined with carets) to quote in error messages; a `ti.static` loop visits
     its body once per unrolled iteration, so p2g's 27 nodes format the same excerpts 27 times. That
     formatting was half of the frontend's time in a profile of a study's tiny run, and a warm run
-    pays the frontend for every kernel of every new storage (docs/performance.md). The excerpt
+    pays the frontend for every kernel of every new storage (docs/log/performance-2026-11.md). The excerpt
     depends only on the node's place in its source, so it is kept per place: the same text, once.
     Taichi versions without this method (`ASTTransformerContext.get_pos_info`) are left alone."""
     from taichi.lang.ast import ast_transformer_utils
