@@ -215,7 +215,10 @@ def progress_report(run_dir: Path) -> str:
     returns = [(r["iteration"], r["episode_return"]) for r in rows if "episode_return" in r]
     if not returns:
         return ""
-    best_iteration, best = max(returns, key=lambda item: item[1])
+    played = [item for item in returns if not math.isnan(item[1])]  # nan: a design the environment refused
+    if not played:
+        return f"episode return: none of the {len(returns)} episodes was playable (the environment refused every design)"
+    best_iteration, best = max(played, key=lambda item: item[1])
     curve = Path(run_dir) / CURVE_FILE
     where = f"; learning curve: {curve}" if curve.is_file() else ""
     return (f"episode return: first {returns[0][1]:.4g}, best {best:.4g} (iteration {best_iteration}), "
@@ -383,11 +386,16 @@ def _versions() -> dict[str, str]:
     return versions
 
 
+NON_FINITE = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
+"""How the metrics file writes non-finite numbers (strings, which JSON accepts), read back."""
+
+
 def read_metrics(path: Path) -> list[dict]:
-    """The rows of a metrics.jsonl (none if it does not exist)."""
+    """The rows of a metrics.jsonl (none if it does not exist), non-finite numbers as floats again."""
     if not path.exists():
         return []
-    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+    return [{k: NON_FINITE.get(v, v) if isinstance(v, str) else v for k, v in json.loads(line).items()}
+            for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
 
 
 def _kept_metrics(path: Path, completed: int) -> list[dict]:

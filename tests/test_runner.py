@@ -161,3 +161,25 @@ def test_render_switch_fails_the_run_clearly_when_no_plugin_renders_its_environm
     with pytest.raises(CodesignError, match="render.enabled: no plugin renders environment 'toy'"):
         runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "run", progress=False)
     assert read_summary(tmp_path / "run")["status"] == "failed"
+
+
+def test_non_finite_metrics_read_back_as_numbers_and_a_run_of_refused_designs_says_so(tmp_path):
+    """metrics.jsonl stores nan and inf as strings (JSON has no such numbers); reading them back gives
+    floats again, and the end-of-run line of a run whose every design was refused (return nan) says
+    so instead of failing to format the strings."""
+    import math
+
+    from codesign.tracking import JsonlTracker
+
+    tracker = JsonlTracker(tmp_path / runner.METRICS_FILE)
+    for i, value in enumerate((math.nan, math.nan)):
+        tracker.log({"episode_return": value, "best_return": -math.inf, "iteration": i}, step=i)
+    tracker.close()
+    rows = runner.read_metrics(tmp_path / runner.METRICS_FILE)
+    assert math.isnan(rows[0]["episode_return"]) and rows[1]["best_return"] == -math.inf
+    assert runner.progress_report(tmp_path) == ("episode return: none of the 2 episodes was playable "
+                                                "(the environment refused every design)")
+    tracker = JsonlTracker(tmp_path / runner.METRICS_FILE)
+    tracker.log({"episode_return": 0.5, "iteration": 2}, step=2)
+    tracker.close()
+    assert runner.progress_report(tmp_path).startswith("episode return: first nan, best 0.5 (iteration 2), last 0.5")
