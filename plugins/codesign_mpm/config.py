@@ -271,8 +271,9 @@ class LocomotionConfig:
         return cover
 
 
-def _preset_config(name: str, preset: EnvironmentPreset) -> type:
-    """LocomotionConfig with the preset's friction, cover and robot stiffness as defaults."""
+def preset_config(name: str, preset: EnvironmentPreset) -> type:
+    """LocomotionConfig with the preset's friction, cover and robot stiffness as defaults (the
+    config class of the environment `name`; `codesign_mpm.plugin.register_environment` uses it)."""
     return make_dataclass(
         f"{name.title().replace('_', '')}Config",
         [("terrain", TerrainConfig, field(default_factory=lambda: TerrainConfig(friction=preset.friction))),
@@ -282,7 +283,7 @@ def _preset_config(name: str, preset: EnvironmentPreset) -> type:
         namespace={"__module__": __name__, "__doc__": f"Locomotion in the '{name}' environment: {preset.description}"})
 
 
-PRESET_CONFIGS: dict[str, type] = {name: _preset_config(name, preset) for name, preset in PRESETS.items()}
+PRESET_CONFIGS: dict[str, type] = {name: preset_config(name, preset) for name, preset in PRESETS.items()}
 
 
 def environment_error(key: str, message: str) -> RecipeError:

@@ -1,6 +1,7 @@
 """Registers the MPM environments and the `simulate` command; imports nothing heavy.
 
-Each entry of `codesign_mpm.config.PRESETS` becomes an environment of the same name.
+Each entry of `codesign_mpm.config.PRESETS` becomes an environment of the same name; another
+plugin adds its own with `register_environment`.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from typing import TYPE_CHECKING, Optional
 
 from codesign.hookspecs import hookimpl
 from codesign.registry import PluginRegistrar
-from codesign_mpm.config import PRESET_CONFIGS, PRESETS, LocomotionConfig
+from codesign_mpm.config import PRESETS, EnvironmentPreset, LocomotionConfig, preset_config
 
 if TYPE_CHECKING:
     import typer
@@ -25,18 +26,37 @@ if TYPE_CHECKING:
 class PresetEnvironment:
     """Factory for one preset; imports the engine only when a recipe builds the environment."""
 
-    preset: str
+    preset: EnvironmentPreset
 
     def __call__(self, config: LocomotionConfig) -> LocomotionEnv:
         from codesign_mpm.env import LocomotionEnv
 
-        return LocomotionEnv(config, PRESETS[self.preset])
+        return LocomotionEnv(config, self.preset)
+
+
+def register_environment(registry: PluginRegistrar, name: str, preset: EnvironmentPreset) -> None:
+    """Add an MPM locomotion environment `name`: the engine's scene (terrain, robot, task) with the
+    preset's terrain friction, cover and robot stiffness as its defaults. Call it from a plugin's
+    `codesign_register`; `codesign render`, `view` and `eval` take its runs as the built-in ones'."""
+    registry.add("environment", name, PresetEnvironment(preset), preset_config(name, preset), preset.description)
+
+
+def is_mpm_environment(name: str) -> bool:
+    """Whether the registered environment `name` is one of this engine's (built-in or added by
+    `register_environment`)."""
+    from codesign.plugins import get_registry
+    from codesign.registry import RegistryError
+
+    try:
+        return isinstance(get_registry().get("environment", name).load_factory(), PresetEnvironment)
+    except RegistryError:  # a plugin's environment that is no longer installed
+        return False
 
 
 @hookimpl
 def codesign_register(registry: PluginRegistrar) -> None:
     for name, preset in PRESETS.items():
-        registry.add("environment", name, PresetEnvironment(name), PRESET_CONFIGS[name], preset.description)
+        register_environment(registry, name, preset)
 
 
 @hookimpl
@@ -53,7 +73,7 @@ def codesign_render_run(run_dir: Path, camera: str, fps: int, progress: bool) ->
     from codesign.runner import load_run_data
 
     _, recipe = load_run_data(run_dir)
-    if recipe.sections["environment"].name not in PRESETS:
+    if not is_mpm_environment(recipe.sections["environment"].name):
         return None
     from codesign_mpm.render import render as render_files
 
@@ -70,7 +90,7 @@ def codesign_view(sources: list[Path], iterations: list[str], out: Path | None) 
     for source in sources:
         runs = ([source] if is_run(source) else runs_under(source)) if source.is_dir() else []
         for run in runs:
-            if load_run_data(run)[1].sections["environment"].name not in PRESETS:
+            if not is_mpm_environment(load_run_data(run)[1].sections["environment"].name):
                 return None
     return view(sources, iterations, out)
 
