@@ -17,7 +17,7 @@ from contact_steps import FACTORS, _rotated_onto, emit
 
 from codesign_mpm import BodySpec, Scene, ShapeSpec, TerrainSpec, build_particles
 from codesign_mpm.engine import Simulator
-from codesign_mpm.scene import MaterialSpec
+from codesign_mpm.scene.spec import MaterialSpec
 
 FRAMES = (15, 30, 60, 124)
 

@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from codesign_mpm import BodySpec, MaterialSpec, Scene, ShapeSpec, TerrainSpec, build_particles
-from codesign_mpm.accuracy import Setting, robot_env
+from codesign_mpm.reports.accuracy import Setting, robot_env
 from codesign_mpm.engine import Simulator
 
 ARCH = sys.argv[1] if len(sys.argv) > 1 else "cuda"

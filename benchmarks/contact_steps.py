@@ -28,7 +28,7 @@ from codesign.artifacts import play
 from codesign.recipe import load_recipe
 from codesign.runner import replay_best, set_up_parts
 from codesign_mpm import BodySpec, Scene, ShapeSpec, TerrainSpec, build_particles
-from codesign_mpm.accuracy import Setting, gait, gait_distance, robot_env
+from codesign_mpm.reports.accuracy import Setting, gait, gait_distance, robot_env
 from codesign_mpm.engine import Simulator
 
 FACTORS = (1.0, 0.25, 0.0625)
@@ -127,7 +127,7 @@ def _rotated_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _floating():
     """Environments built inside have gravity 0 and the robot 0.15 above the terrain: the body's own
     motion without any contact (the environment has no key for either, so the scene is edited)."""
-    import codesign_mpm.env as env_module
+    import codesign_mpm.environment.env as env_module
 
     make_scene = env_module.make_scene
 

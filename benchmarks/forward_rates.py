@@ -19,7 +19,7 @@ import numpy as np
 from codesign.artifacts import play
 from codesign.recipe import load_recipe
 from codesign.runner import set_up_parts
-from codesign_mpm.bench import Case, measure_forward
+from codesign_mpm.reports.bench import Case, measure_forward
 
 
 def quickstart_episode_s(repeats: int = 7) -> float:

@@ -28,7 +28,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from codesign_mpm import BodySpec, MaterialSpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec, build_particles
-from codesign_mpm.accuracy import Setting, gait, measure_robot, robot_env
+from codesign_mpm.reports.accuracy import Setting, gait, measure_robot, robot_env
 from codesign_mpm.engine import Simulator
 
 FRAMES = 125  # 1 s of 8 ms control steps
@@ -92,8 +92,8 @@ def ranking(seeds: range, arch: str, contact: str, settled: bool, environment: s
     """Each random gait's distance at each preset, one record per gait as it is measured (so the
     presets or the seeds can be split between machines), then Spearman's rho between the presets'
     rankings (`spearman_records`)."""
-    from codesign_mpm.accuracy import preset_setting
-    from codesign_mpm.quality import QUALITY
+    from codesign_mpm.reports.accuracy import preset_setting
+    from codesign_mpm.scene.quality import QUALITY
 
     distances = {}
     for name in presets:

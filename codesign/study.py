@@ -65,7 +65,7 @@ class Study:
     recipe: dict  # the base recipe, shared by every arm
     scale: str
     prepare: Arm | None = None  # a run made first (first seed), whose best controller arms start from
-    analysis: str | None = None  # "module:function" measuring one robot instead of arms (codesign_mpm.analyses)
+    analysis: str | None = None  # "module:function" measuring one robot instead of arms (codesign_mpm.reports.analyses)
     parameters: dict = field(default_factory=dict)  # the analysis's own settings
     still: bool = True  # also play each arm's starting design without any action (the return of doing nothing)
     prepared_arms: tuple[str, ...] | None = None  # labels of the arms that start from `prepare` (None: all)
@@ -421,7 +421,7 @@ def _run_on_ray(study: Study, root: Path, address: str | None, progress: bool) -
 
 
 RUNS_FILE = "runs.jsonl"  # what the table is built from: a header line, then one line per finished run
-POINTS_FILE = "points.jsonl"  # an analysis's measurements, one line per point (codesign_mpm.analyses)
+POINTS_FILE = "points.jsonl"  # an analysis's measurements, one line per point (codesign_mpm.reports.analyses)
 DOCS_DATA = Path("docs") / "data" / "studies"
 
 
@@ -599,7 +599,7 @@ def _analysis(ref: str) -> Callable[[Study, Path, bool], str]:
         return getattr(importlib.import_module(module), function)
     except (ImportError, AttributeError) as exc:
         raise RecipeError(f"invalid study: study.analysis: {ref!r} names no function ({exc}); "
-                          f"give it as module:function, e.g. codesign_mpm.analyses:loss_landscape") from exc
+                          f"give it as module:function, e.g. codesign_mpm.reports.analyses:loss_landscape") from exc
 
 
 def _heading(study: Study) -> str:

@@ -104,8 +104,8 @@ def render_blend_series(space, first: str = "seal", second: str = "fish", steps:
 
 def ground_space():
     """The default ground environment's design space (builds particles only, no simulation)."""
-    from codesign_mpm.config import PRESET_CONFIGS, PRESETS
-    from codesign_mpm.env import LocomotionEnv
+    from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS
+    from codesign_mpm.environment.env import LocomotionEnv
 
     return LocomotionEnv(PRESET_CONFIGS["ground"](), PRESETS["ground"]).design_space
 

@@ -19,8 +19,8 @@ from conftest import TINY_MPM_HORIZON, TINY_MPM_RECIPE
 from codesign import plugins, runner
 from codesign.artifacts import PALETTE
 from codesign.recipe import resolve_recipe
-from codesign_mpm.render import PASSIVE
-from codesign_mpm.view import MAX_FIBERS, PIECE_COLORS
+from codesign_mpm.viewing.render import PASSIVE
+from codesign_mpm.viewing.view import MAX_FIBERS, PIECE_COLORS
 
 rrchunk = pytest.importorskip("rerun.chunk")
 

@@ -11,11 +11,11 @@ Importing this package does not import Taichi; `Simulator` is loaded on first us
 """
 import sys
 
-from codesign_mpm.sampling import Particles, build_particles
-from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
+from codesign_mpm.scene.sampling import Particles, build_particles
+from codesign_mpm.scene.spec import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
 
-if "gymnasium" in sys.modules:  # register the Gymnasium ids now; otherwise `import codesign_mpm.gym` does
-    import codesign_mpm.gym  # noqa: F401
+if "gymnasium" in sys.modules:  # register the Gymnasium ids now; otherwise `import codesign_mpm.environment.gym` does
+    import codesign_mpm.environment.gym  # noqa: F401
 
 __all__ = ["BodySpec", "MaterialSpec", "MuscleSpec", "Particles", "Scene", "SceneError", "ShapeSpec",
            "Simulator", "SimulationError", "TerrainSpec", "build_particles"]

@@ -1,6 +1,6 @@
 """Registers the MPM environments and the `simulate` command; imports nothing heavy.
 
-Each entry of `codesign_mpm.config.PRESETS` becomes an environment of the same name; another
+Each entry of `codesign_mpm.environment.config.PRESETS` becomes an environment of the same name; another
 plugin adds its own with `register_environment`.
 """
 
@@ -12,14 +12,14 @@ from typing import TYPE_CHECKING, Optional
 
 from codesign.hookspecs import hookimpl
 from codesign.registry import PluginRegistrar
-from codesign_mpm.config import PRESETS, EnvironmentPreset, LocomotionConfig, preset_config
+from codesign_mpm.environment.config import PRESETS, EnvironmentPreset, LocomotionConfig, preset_config
 
 if TYPE_CHECKING:
     import typer
 
     from codesign.hookspecs import ViewRecording
 
-    from codesign_mpm.env import LocomotionEnv
+    from codesign_mpm.environment.env import LocomotionEnv
 
 
 @dataclass(frozen=True)
@@ -29,7 +29,7 @@ class PresetEnvironment:
     preset: EnvironmentPreset
 
     def __call__(self, config: LocomotionConfig) -> LocomotionEnv:
-        from codesign_mpm.env import LocomotionEnv
+        from codesign_mpm.environment.env import LocomotionEnv
 
         return LocomotionEnv(config, self.preset)
 
@@ -75,7 +75,7 @@ def codesign_render_run(run_dir: Path, camera: str, fps: int, progress: bool) ->
     _, recipe = load_run_data(run_dir)
     if not is_mpm_environment(recipe.sections["environment"].name):
         return None
-    from codesign_mpm.render import render as render_files
+    from codesign_mpm.viewing.render import render as render_files
 
     return render_files(run_dir, camera=camera, fps=fps, progress=progress)[0]
 
@@ -83,9 +83,9 @@ def codesign_render_run(run_dir: Path, camera: str, fps: int, progress: bool) ->
 @hookimpl
 def codesign_view(sources: list[Path], iterations: list[str], out: Path | None) -> ViewRecording | None:
     """`codesign view`: MPM runs (their environment a preset here), sweeps or studies of them, exports
-    of `codesign simulate` and designs, as a Rerun recording (codesign_mpm.view)."""
+    of `codesign simulate` and designs, as a Rerun recording (codesign_mpm.viewing.view)."""
     from codesign.runner import load_run_data
-    from codesign_mpm.view import is_run, runs_under, view
+    from codesign_mpm.viewing.view import is_run, runs_under, view
 
     for source in sources:
         runs = ([source] if is_run(source) else runs_under(source)) if source.is_dir() else []
@@ -115,7 +115,7 @@ def codesign_cli(app: typer.Typer) -> None:
 
     @app.command()
     def simulate(
-        scene: Path = typer.Argument(..., help="Scene YAML (keys of codesign_mpm.scene.Scene)."),
+        scene: Path = typer.Argument(..., help="Scene YAML (keys of codesign_mpm.scene.spec.Scene)."),
         frames: int = typer.Option(100, "--frames", min=0, help="Frames (control steps) to simulate."),
         export: Optional[Path] = typer.Option(
             None, "--export", help="Write per-frame x, v (frames+1, N, 3) and material, body, frame_dt to .npz."
@@ -152,8 +152,8 @@ def codesign_cli(app: typer.Typer) -> None:
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
     ) -> None:
         """Render an episode headless to a video (robot red/blue by muscle activation) and/or a still."""
-        from codesign_mpm.render import CAMERAS
-        from codesign_mpm.render import render as render_files
+        from codesign_mpm.viewing.render import CAMERAS
+        from codesign_mpm.viewing.render import render as render_files
 
         if camera not in CAMERAS:
             raise typer.BadParameter(f"--camera {camera!r}: choose from {', '.join(CAMERAS)}")
@@ -172,7 +172,7 @@ def codesign_cli(app: typer.Typer) -> None:
     ) -> None:
         """Forward throughput of one scene per environment: particle-substeps/s, substeps per
         control step and ms per substep (the old code, paper scale: about 245 ms, 41 substeps)."""
-        from codesign_mpm.bench import ENV_SCALES, run_environment_bench
+        from codesign_mpm.reports.bench import ENV_SCALES, run_environment_bench
 
         for s in scale:
             if s not in ENV_SCALES:
@@ -196,8 +196,8 @@ def codesign_cli(app: typer.Typer) -> None:
     ) -> None:
         """Error against wall time and peak memory of reference problems with known or converged answers,
         over dx, particles per cell, cfl, float32/float64 and the checkpoint interval."""
-        from codesign_mpm.accuracy import PROBLEMS, run_accuracy_bench
-        from codesign_mpm.reports import write_accuracy_report
+        from codesign_mpm.reports.accuracy import PROBLEMS, run_accuracy_bench
+        from codesign_mpm.reports.documents import write_accuracy_report
 
         for name in problem:
             if name not in PROBLEMS:
@@ -219,8 +219,8 @@ def codesign_cli(app: typer.Typer) -> None:
     ) -> None:
         """Hard cases run forward and backward at several settings: max |v|, min/max J, energy drift,
         gradient norms, and any non-finite value or error raised."""
-        from codesign_mpm.reports import write_stability_report
-        from codesign_mpm.stability import CASES, run_stability_bench
+        from codesign_mpm.reports.documents import write_stability_report
+        from codesign_mpm.reports.stability import CASES, run_stability_bench
 
         for name in case:
             if name not in CASES:
@@ -239,7 +239,7 @@ def codesign_cli(app: typer.Typer) -> None:
     ) -> None:
         """Seconds to compile a new scene's forward and backward kernels with an empty offline cache:
         a muscle-actuated robot on each ground cover, each in its own process."""
-        from codesign_mpm.bench import COVERS, run_compile_bench
+        from codesign_mpm.reports.bench import COVERS, run_compile_bench
 
         for c in cover:
             if c not in COVERS:
@@ -263,7 +263,7 @@ def codesign_cli(app: typer.Typer) -> None:
         with checkpointing, peak memory of a differentiable episode, first-call (compile) time, and
         8 episodes in one batched simulator against the same 8 one after the other, and p2g's
         private-grid scatter against atomic adds; or (--profile) where a substep's time goes."""
-        from codesign_mpm.bench import SCALES, run_engine_bench, run_profile_bench
+        from codesign_mpm.reports.bench import SCALES, run_engine_bench, run_profile_bench
 
         for s in scale:
             if s not in SCALES:

@@ -16,9 +16,9 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from codesign.errors import CodesignError
-from codesign_mpm.quality import QUALITY, Quality
-from codesign_mpm.sampling import build_particles
-from codesign_mpm.scene import BodySpec, Scene, SceneError, validate_scene
+from codesign_mpm.scene.quality import QUALITY, Quality
+from codesign_mpm.scene.sampling import build_particles
+from codesign_mpm.scene.spec import BodySpec, Scene, SceneError, validate_scene
 
 
 class SceneFileError(CodesignError):
@@ -128,7 +128,7 @@ def simulate(scene: Scene, frames: int, export: Path | None = None, progress: bo
     report = SimulationReport(particles.n, scene.grid_shape, sim.timestep.substeps, sim.timestep.dt, frames,
                               build_time, first_frame_time, time.perf_counter() - started)
     if keep:
-        from codesign_mpm.terrain import height_map
+        from codesign_mpm.scene.terrain import height_map
 
         # muscle, robot, actions (all zero here), dx and height_map are for `codesign render`
         np.savez_compressed(export, x=xs, v=vs, material=particles.material.astype(np.int32),

@@ -11,7 +11,7 @@ from codesign.artifacts import play, play_population
 from codesign.recipe import resolve_recipe
 from codesign.runner import build_parts
 from codesign_mpm import BodySpec, MaterialSpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec, build_particles
-from codesign_mpm.batch import BatchSimulator
+from codesign_mpm.engine.batch import BatchSimulator
 from codesign_mpm.engine import SimulationError, Simulator
 from codesign_optimizers.common import candidate
 

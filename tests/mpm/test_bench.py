@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from codesign_mpm.bench import Case, measure_batch, measure_forward
+from codesign_mpm.reports.bench import Case, measure_batch, measure_forward
 
 
 def test_forward_measurement_reports_throughput():
@@ -30,7 +30,7 @@ def test_bench_compile_names_the_allowed_covers(cli):
 def test_the_profile_counts_a_substeps_kernel_launches_and_splits_its_time():
     """`codesign bench engine --profile`: a forward substep of the tiny scene is one launch (the
     fused substep; the state check once a frame), and the kernels' shares add up to one."""
-    from codesign_mpm.bench import run_profile_bench
+    from codesign_mpm.reports.bench import run_profile_bench
 
     records = []
     run_profile_bench(["tiny"], "cpu", records.append, progress=False)

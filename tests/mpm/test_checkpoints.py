@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from codesign_mpm.checkpoints import CheckpointStore
+from codesign_mpm.engine.checkpoints import CheckpointStore
 
 
 def states(count, n=5, seed=0):

@@ -15,12 +15,12 @@ import trimesh
 
 from codesign.errors import RecipeError
 from codesign.plugins import get_registry
-from codesign_mpm.bridge import simulate
-from codesign_mpm.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
+from codesign_mpm.environment.bridge import simulate
+from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
 from codesign_mpm.engine import Simulator
-from codesign_mpm.sampling import build_particles
-from codesign_mpm.env import LocomotionEnv
-from codesign_mpm.scene import BodySpec, MuscleSpec, Scene, SceneError, ShapeSpec, validate_scene
+from codesign_mpm.scene.sampling import build_particles
+from codesign_mpm.environment.env import LocomotionEnv
+from codesign_mpm.scene.spec import BodySpec, MuscleSpec, Scene, SceneError, ShapeSpec, validate_scene
 from test_environments import ENVIRONMENTS  # same folder: pytest puts it on sys.path
 
 REPRESENTATIONS = ["particle", "voxel", "implicit", "diff_cppn", "sdf_lerp", "wasserstein"]

@@ -234,7 +234,7 @@ def test_the_private_scatter_equals_the_atomic_one(sim, actions, weights, monkey
 
 def test_torch_bridge_passes_gradcheck(sim):
     torch = pytest.importorskip("torch")
-    from codesign_mpm.bridge import simulate
+    from codesign_mpm.environment.bridge import simulate
 
     E0 = torch.tensor(sim.particles.youngs_modulus.copy())
 
@@ -252,7 +252,7 @@ def test_torch_bridge_passes_gradcheck(sim):
 
 def test_backward_after_the_state_changed_is_refused_and_the_bridge_replays_its_rollout(sim):
     torch = pytest.importorskip("torch")
-    from codesign_mpm.bridge import simulate
+    from codesign_mpm.environment.bridge import simulate
 
     actions = np.random.default_rng(1).uniform(-0.3, 0.3, (3, 4))
     sim.rollout(actions)
@@ -281,7 +281,7 @@ def test_backward_after_the_state_changed_is_refused_and_the_bridge_replays_its_
 def test_a_stiffer_design_through_the_bridge_gets_a_stable_step(sim):
     """set_design recomputes the CFL step; at the soft design's step the stiff one blows up."""
     torch = pytest.importorskip("torch")
-    from codesign_mpm.bridge import simulate
+    from codesign_mpm.environment.bridge import simulate
 
     soft_E, soft = sim.particles.youngs_modulus.copy(), sim.timestep
     actions = np.full((MAX_FRAMES, 4), 0.3)

@@ -67,8 +67,8 @@ def test_block_on_incline_slides_iff_tan_theta_exceeds_mu(theta_deg, contact):
 def gait_distance(cfl: float = 0.4, dx: float = DX, **options) -> float:
     """Distance along x after 1 s of docs/accuracy.md's travelling gait on robot_ground (`options`:
     robot_env's, e.g. flip, terrain_height, contact)."""
-    from codesign_mpm.accuracy import Setting
-    from codesign_mpm.accuracy import gait_distance as distance
+    from codesign_mpm.reports.accuracy import Setting
+    from codesign_mpm.reports.accuracy import gait_distance as distance
 
     return distance(Setting(dx=dx, cfl=cfl), **options)
 
@@ -196,7 +196,7 @@ def test_elastic_bar_rings_at_its_analytic_frequency_and_converges():
     """f = sqrt(E / rho) / (2 L) for a free-free bar with Poisson's ratio 0. The error is not
     monotone in dx (where the bar's ends fall between nodes matters), so the test bounds it by
     a line in dx at every resolution and compares the envelopes of coarse and fine grids."""
-    from codesign_mpm.accuracy import Setting, measure
+    from codesign_mpm.reports.accuracy import Setting, measure
 
     errors = {n: measure(Setting(dx=1 / n))["relative_error"] for n in (20, 24, 32, 48, 64)}
     for n, error in errors.items():

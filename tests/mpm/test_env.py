@@ -10,8 +10,8 @@ import pytest
 from codesign.cli import main
 from codesign.errors import RecipeError
 from codesign.interfaces import DesignFields
-from codesign_mpm.config import PRESET_CONFIGS, PRESETS, LocomotionConfig, RobotConfig, TaskConfig, TerrainConfig
-from codesign_mpm.env import LocomotionEnv
+from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, LocomotionConfig, RobotConfig, TaskConfig, TerrainConfig
+from codesign_mpm.environment.env import LocomotionEnv
 
 GRAVITY = 3.8
 QUICKSTART = Path(__file__).resolve().parents[2] / "recipes" / "quickstart.yaml"
@@ -175,7 +175,7 @@ def test_no_shipped_study_puts_a_robot_in_water_near_a_wall():
 
     from codesign.recipe import RECIPES_DIR, resolve_recipe
     from codesign.study import arm_recipe, load_study
-    from codesign_mpm.env import _warn_wall_push
+    from codesign_mpm.environment.env import _warn_wall_push
 
     checked = 0
     for path in sorted((RECIPES_DIR / "studies").glob("*.yaml")):

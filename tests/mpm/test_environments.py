@@ -3,8 +3,8 @@ how robots interact with each ground cover (their gradients: test_gradients_*.py
 import numpy as np
 import pytest
 
-from codesign_mpm.config import PRESET_CONFIGS, PRESETS, CoverConfig, RobotConfig, TerrainConfig
-from codesign_mpm.env import LocomotionEnv
+from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, CoverConfig, RobotConfig, TerrainConfig
+from codesign_mpm.environment.env import LocomotionEnv
 
 ENVIRONMENTS = ["ground", "ice", "desert", "snow", "clay", "wetland", "shallow_water", "ocean"]
 DX = 1 / 32
@@ -138,7 +138,7 @@ def test_a_differentiable_episode_of_a_design_smaller_than_its_workspace_takes_t
     from codesign.interfaces import DesignFields
     from codesign_basics.config import SineConfig
     from codesign_basics.sine import SineController
-    from codesign_mpm.episode import run_episode
+    from codesign_mpm.environment.episode import run_episode
 
     env = make_env("ocean", horizon=3, robot=RobotConfig(size=[0.3, 0.15, 0.15], youngs_modulus=1e5))
     try:

@@ -16,8 +16,8 @@ from codesign_basics.sine import SineController
 from codesign_basics.trajectory import TrajectoryController
 from codesign_designs.config import ParticleConfig
 from codesign_designs.particle import ParticleRepresentation
-from codesign_mpm.config import PRESET_CONFIGS, PRESETS, RobotConfig, TaskConfig, TerrainConfig
-from codesign_mpm.env import LocomotionEnv
+from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, RobotConfig, TaskConfig, TerrainConfig
+from codesign_mpm.environment.env import LocomotionEnv
 
 pytestmark = pytest.mark.slow
 HORIZON = 4
@@ -161,7 +161,7 @@ def test_gymnasium_environments_pass_the_checker(env_id):
     gymnasium = pytest.importorskip("gymnasium")
     from gymnasium.utils.env_checker import check_env
 
-    env = gymnasium.make(f"codesign_mpm.gym:{env_id}", environment={"dx": 1 / 24, "horizon": 5, "terrain": {"height": 0.13},
+    env = gymnasium.make(f"codesign_mpm.environment.gym:{env_id}", environment={"dx": 1 / 24, "horizon": 5, "terrain": {"height": 0.13},
                          "observation": {"muscle_centroids": True, "time": True}})
     try:
         check_env(env.unwrapped, skip_render_check=True)

@@ -2,7 +2,7 @@
 against central finite differences (float64; see gradient_checks.py)."""
 import pytest
 
-from codesign_mpm.config import CoverConfig, TerrainConfig
+from codesign_mpm.environment.config import CoverConfig, TerrainConfig
 from gradient_checks import check_every_input, check_stress_jacobian  # same folder: on sys.path under pytest
 
 pytestmark = pytest.mark.slow

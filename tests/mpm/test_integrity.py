@@ -1,10 +1,10 @@
-"""Body integrity (codesign_mpm.integrity): pieces that share no grid node, a design's thinnest part,
+"""Body integrity (codesign_mpm.scene.integrity): pieces that share no grid node, a design's thinnest part,
 the resolution filter every design goes through, and what a torn episode gets."""
 import numpy as np
 import pytest
 
-from codesign_mpm.integrity import IntegrityWatch, pieces, resolved_body, thinnest_cells, torn_fraction
-from codesign_mpm.sampling import lattice
+from codesign_mpm.scene.integrity import IntegrityWatch, pieces, resolved_body, thinnest_cells, torn_fraction
+from codesign_mpm.scene.sampling import lattice
 
 DX = 1 / 32
 H = DX / 2  # the sampling lattice of 8 particles per cell
@@ -87,8 +87,8 @@ def test_a_watch_records_the_largest_tear_and_when_it_first_exceeded_the_toleran
 
 
 def ground(**changes):
-    from codesign_mpm.config import PRESET_CONFIGS, PRESETS, TerrainConfig
-    from codesign_mpm.env import LocomotionEnv
+    from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, TerrainConfig
+    from codesign_mpm.environment.env import LocomotionEnv
 
     config = PRESET_CONFIGS["ground"](dx=1 / 48, horizon=150, terrain=TerrainConfig(height=0.1, friction=0.5), **changes)
     return LocomotionEnv(config, PRESETS["ground"])
@@ -98,7 +98,7 @@ def test_actuation_at_the_bound_keeps_the_quick_start_body_whole():
     """The quick start's box at the default quality, driven bang-bang at the action bound (neighbouring
     muscles in antiphase) for 150 frames: no numerical fracture. With the old default muscle strength
     (stiffness ratio 1, 0.72 x the shear modulus at the bound) 8% of the mass tore off by frame 124."""
-    from codesign_mpm.stability import bang_bang
+    from codesign_mpm.reports.stability import bang_bang
 
     env = ground()
     try:
@@ -115,7 +115,7 @@ def test_actuation_at_the_bound_keeps_the_quick_start_body_whole():
 
 def test_muscles_stronger_than_the_material_can_carry_are_refused():
     from codesign.errors import RecipeError
-    from codesign_mpm.config import RobotConfig
+    from codesign_mpm.environment.config import RobotConfig
 
     with pytest.raises(RecipeError, match=r"environment.robot.muscle_stiffness_ratio: 1.0 is too strong .* "
                                           r"must be <= 0.4167 at poisson_ratio 0.2"):
@@ -128,7 +128,7 @@ def test_muscles_stronger_than_the_material_can_carry_are_refused():
 def test_a_torn_episode_gets_what_the_recipe_says(rule, dropped, penalty):
     """penalize: penalty x horizon x (torn - tolerance) off the last step; terminate: rewards from the
     frame it tore on are dropped; off: nothing. A whole body gets nothing either way."""
-    from codesign_mpm.config import IntegrityConfig
+    from codesign_mpm.environment.config import IntegrityConfig
 
     env = ground(integrity=IntegrityConfig(on_tear=rule))
     env.horizon = 4
@@ -168,7 +168,7 @@ def _audit(scene, frames, actions=None, **initial):
     the largest |muscle work|."""
     from codesign_mpm import build_particles
     from codesign_mpm.engine import SimulationError, Simulator
-    from codesign_mpm.stability import energy
+    from codesign_mpm.reports.stability import energy
 
     sim = Simulator(scene, build_particles(scene))
     sim.audit_work = True
@@ -198,7 +198,7 @@ def test_the_body_never_gains_more_energy_than_its_muscles_put_in(where):
     for 120 frames; and the same audit flags an integrator that creates energy (a step 3x the CFL
     bound, no muscles), so it can fail."""
     from codesign_mpm import BodySpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec
-    from codesign_mpm.stability import bang_bang
+    from codesign_mpm.reports.stability import bang_bang
 
     on_ground = where.startswith("ground")
     scene = Scene(size=[1.0, 0.5, 0.5], dx=1 / 32, dtype="float64", flip=0.99 if "FLIP" in where else 0.0,
@@ -242,7 +242,7 @@ def test_the_audited_elastic_energy_is_the_one_the_engine_integrates():
     from codesign_mpm.engine import Simulator
     from codesign_mpm.materials import lame
     from codesign_mpm.materials.neo_hookean import J_MIN, volumetric_energy
-    from codesign_mpm.sampling import build_particles
+    from codesign_mpm.scene.sampling import build_particles
 
     scene = Scene(size=[0.5, 0.5, 0.5], dx=1 / 32, dtype="float64",
                   bodies=[BodySpec(name="block", shape=ShapeSpec(size=[0.0625, 0.0625, 0.0625]), center=[0.25, 0.25, 0.25])])

@@ -21,5 +21,5 @@ def imported_modules(path: Path) -> set[str]:
 
 def test_env_and_episode_do_not_import_each_other():
     episode = imported_modules(PACKAGE / "episode.py")
-    assert "codesign_mpm.env" not in episode, "episode runs against codesign_mpm.protocols.EpisodeEnvironment"
-    assert "codesign_mpm.episode" in imported_modules(PACKAGE / "env.py")  # one way only
+    assert "codesign_mpm.environment.env" not in episode, "episode runs against codesign_mpm.environment.protocols.EpisodeEnvironment"
+    assert "codesign_mpm.environment.episode" in imported_modules(PACKAGE / "env.py")  # one way only

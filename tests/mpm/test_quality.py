@@ -7,8 +7,8 @@ import pytest
 
 from codesign.errors import RecipeError
 from codesign.recipe import resolve_section
-from codesign_mpm.config import PRESET_CONFIGS, LocomotionConfig, TerrainConfig
-from codesign_mpm.quality import QUALITY
+from codesign_mpm.environment.config import PRESET_CONFIGS, LocomotionConfig, TerrainConfig
+from codesign_mpm.scene.quality import QUALITY
 from codesign_mpm.simulate import SceneFileError, load_scene
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "accuracy.md"

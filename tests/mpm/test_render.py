@@ -13,8 +13,8 @@ from conftest import TINY_MPM_HORIZON, TINY_MPM_RECIPE
 from codesign import plugins, runner
 from codesign.artifacts import PALETTE
 from codesign.recipe import resolve_recipe
-from codesign_mpm.render import TORN, Recording, Renderer, episode_colors, record_run, render
-from codesign_mpm.scene import BodySpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec
+from codesign_mpm.viewing.render import TORN, Recording, Renderer, episode_colors, record_run, render
+from codesign_mpm.scene.spec import BodySpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec
 from codesign_mpm.simulate import simulate
 
 HORIZON = TINY_MPM_HORIZON

@@ -9,9 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from codesign_mpm.accuracy import PROBLEMS, run_accuracy_bench
-from codesign_mpm.reports import machine_description, pareto_front, write_accuracy_report, write_stability_report
-from codesign_mpm.stability import CASES, passed, run_stability_bench
+from codesign_mpm.reports.accuracy import PROBLEMS, run_accuracy_bench
+from codesign_mpm.reports.documents import pareto_front, write_accuracy_report, write_stability_report
+from codesign_mpm.reports.machine import machine_description
+from codesign_mpm.reports.stability import CASES, passed, run_stability_bench
 
 
 def test_pareto_front_keeps_only_the_unbeaten_settings():

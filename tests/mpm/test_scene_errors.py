@@ -6,8 +6,8 @@ import pytest
 
 from codesign_mpm import BodySpec, MaterialSpec, Scene, SceneError, ShapeSpec, TerrainSpec, build_particles
 from codesign_mpm.engine import time_step, wave_speeds
-from codesign_mpm.engine.simulator import distinct_rows
-from codesign_mpm.scene import validate_scene
+from codesign_mpm.engine.time_step import distinct_rows
+from codesign_mpm.scene.spec import validate_scene
 
 
 def scene(**body) -> Scene:
@@ -183,7 +183,7 @@ def test_a_layer_fills_the_terrain_around_other_bodies_without_overlap():
     p = build_particles(s)
     body, layer = p.x[p.body == 0], p.x[p.body == 1]
     assert not inside_particles(layer, body, np.cbrt(p.volume[p.body == 0][0])).any()
-    from codesign_mpm.terrain import height_map
+    from codesign_mpm.scene.terrain import height_map
 
     h = height_map(s)
     ij = np.round(layer[:, [0, 2]] / s.dx).astype(int)

@@ -1,4 +1,4 @@
-"""A settled start (codesign_mpm.settle): layers carry their own weight from frame 0; a relaxed body is at
+"""A settled start (codesign_mpm.environment.settle): layers carry their own weight from frame 0; a relaxed body is at
 rest and carries its weight."""
 import math
 
@@ -7,8 +7,8 @@ import pytest
 
 from codesign_mpm import BodySpec, MaterialSpec, Scene, ShapeSpec, TerrainSpec, build_particles
 from codesign_mpm.engine import Simulator
-from codesign_mpm import settle
-from codesign_mpm.settle import RELAX_FRAMES, REST_SPEED, ROBOT_REST_SPEED, relax, relax_scene, settled_state
+from codesign_mpm.environment import settle
+from codesign_mpm.environment.settle import RELAX_FRAMES, REST_SPEED, ROBOT_REST_SPEED, relax, relax_scene, settled_state
 
 G, DEPTH = 3.8, 0.15
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import yaml
 
-from codesign_mpm.sampling import build_particles
+from codesign_mpm.scene.sampling import build_particles
 from codesign_mpm.simulate import load_scene
 
 SCENE = {

@@ -74,7 +74,7 @@ def test_a_frictionless_floor_gives_no_propulsion():
 def test_a_population_plays_as_its_members_do():
     """Springs are particle state: a batch of two designs (one sitting out substeps, being stiffer)
     carries each member's springs as the member alone does."""
-    from codesign_mpm.batch import BatchSimulator
+    from codesign_mpm.engine.batch import BatchSimulator
 
     scene = block_scene(TerrainSpec(height=0.1, friction=0.5, contact="spring"), [0.5, 0.14 + DX / 8, 0.25])
     particles = build_particles(scene)
@@ -111,8 +111,8 @@ def test_a_closed_loop_episode_carries_the_springs_from_step_to_step():
 
     from codesign_basics.config import MLPConfig
     from codesign_basics.mlp import MLPController
-    from codesign_mpm.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
-    from codesign_mpm.env import LocomotionEnv
+    from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
+    from codesign_mpm.environment.env import LocomotionEnv
     from test_episodes import parts, stepped_return
 
     config = PRESET_CONFIGS["ground"](dx=1 / 32, horizon=4, dtype="float64", pic_time=PIC_TIME,

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from codesign_mpm.tasks import MovementSpeed, RobotFrame, TaskContext, Turning, VelocityTracking, WaypointFollowing, quintic
+from codesign_mpm.environment.tasks import MovementSpeed, RobotFrame, TaskContext, Turning, VelocityTracking, WaypointFollowing, quintic
 
 DT, HORIZON = 8e-3, 50
 REST = np.stack(np.meshgrid(np.linspace(-0.1, 0.1, 20), np.linspace(-0.04, 0.04, 5), np.linspace(-0.04, 0.04, 5),

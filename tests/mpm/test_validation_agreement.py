@@ -10,8 +10,8 @@ import pytest
 from codesign.errors import RecipeError
 from codesign.recipe import load_recipe
 from codesign.runner import build_parts
-from codesign_mpm.config import PRESETS
-from codesign_mpm.quality import QUALITY
+from codesign_mpm.environment.config import PRESETS
+from codesign_mpm.scene.quality import QUALITY
 
 RECIPES = sorted((Path(__file__).parents[2] / "recipes").glob("*.yaml"))
 CASES = [(recipe, []) for recipe in RECIPES] + [(RECIPES[0].parent / "quickstart.yaml", [f"environment.name={name}"])

@@ -2,8 +2,11 @@
 
 Where things live (docs/engine.md has the longer tour):
 
-    simulator.py     `Simulator` (the public API), its time step (`time_step`), the substep and its
-                     reverse in a few lines each, rollouts with checkpoints and `backward`
+    simulator.py     `Simulator` (the public API), the substep and its reverse in a few lines each,
+                     rollouts with checkpoints and `backward`
+    time_step.py     the CFL step at rest (`time_step`), wave speeds, the state-following step's bounds
+    checkpoints.py   a rollout's checkpoints, in memory and past a bound in a file
+    batch.py         `BatchSimulator`: several scenes side by side in one simulator
     storage.py       `Layout`, `_Storage` (every Taichi field, the slots and their load/save kernels,
                      the guard `_check`) and the pool of compiled storages
     transfer.py      p2g and g2p, each beside its hand-written adjoint; the FLIP share
@@ -19,10 +22,10 @@ Importing this package imports Taichi; `codesign_mpm` itself loads it on first u
 from codesign_mpm.engine.constitutive import J_MIN, MODEL_NAMES
 from codesign_mpm.engine.eigen import JACOBI_EPS, JACOBI_SWEEPS, JACOBI_TOL_ULPS
 from codesign_mpm.engine.grid import MASS_EPS
-from codesign_mpm.engine.simulator import (ADAPTIVE_CFL_FACTOR, CHECKPOINT_MEMORY_BYTES, GRID_STORE_BYTES,
-                                           GRID_STORE_MARGIN, MAX_ADAPTIVE_CFL, Gradients, Rollout,
-                                           SimulationError, Simulator, State, TimeStep, time_step, wave_speeds)
+from codesign_mpm.engine.simulator import (CHECKPOINT_MEMORY_BYTES, GRID_STORE_BYTES, GRID_STORE_MARGIN, Gradients,
+                                           Rollout, SimulationError, Simulator, State)
 from codesign_mpm.engine.storage import CAPACITY_STEP, MAX_DEAD_STORAGES, MAX_FREE_STORAGES, Layout
+from codesign_mpm.engine.time_step import ADAPTIVE_CFL_FACTOR, MAX_ADAPTIVE_CFL, TimeStep, time_step, wave_speeds
 from codesign_mpm.engine.transfer import flip_models
 
 __all__ = ["ADAPTIVE_CFL_FACTOR", "CAPACITY_STEP", "CHECKPOINT_MEMORY_BYTES", "GRID_STORE_BYTES",

@@ -3,7 +3,7 @@ and the pool that shares compiled storages between simulators.
 
 Particle state lives in `slots`: two (ping-pong) for plain simulation, or S + 1 for a
 differentiable segment of S substeps. A differentiable rollout stores the state only at
-segment starts (checkpoints, `codesign_mpm.checkpoints`) and recomputes each segment in the
+segment starts (checkpoints, `codesign_mpm.engine.checkpoints`) and recomputes each segment in the
 backward pass, so memory grows with T/S + S rather than T substeps. That recompute keeps each
 substep's grid (the touched box, `grid._store_grid`) for the reverse pass, which then runs only
 the stress and grid_op again.
@@ -52,7 +52,7 @@ class Layout:
     boundary_cells: int
     requires_grad: bool
     scatter_copies: int = 1  # private grids p2g scatters into without atomics (runtime.scatter_copies)
-    members: int = 1  # scenes simulated side by side (codesign_mpm.batch); 1: a plain simulator
+    members: int = 1  # scenes simulated side by side (codesign_mpm.engine.batch); 1: a plain simulator
     has_flip: bool = False  # FLIP's share in the elastic bodies' velocity update (scene.flip > 0)
     surface_contact: bool = False  # the terrain's contact at its exact surface (terrain.contact: surface, spring)
     contact_memory: bool = False  # the surface contact as springs whose friction remembers (terrain.contact: spring)

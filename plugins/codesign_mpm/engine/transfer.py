@@ -305,7 +305,7 @@ class _Transfers:
         for model in ti.static(flip_models()):
             if self.material[p] == model and self.F[s, p].determinant() > J_FLIP:
                 share = self.flip_ratio[None]
-                if ti.static(self.batched):  # each member at its own step (simulator.flip_share)
+                if ti.static(self.batched):  # each member at its own step (time_step.flip_share)
                     share = self.member_flip[self.member[p]]
         return share
 

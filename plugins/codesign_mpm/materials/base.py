@@ -91,7 +91,7 @@ def _elastic_speed(youngs_modulus: float, poisson_ratio: float, density: float, 
 class Parameter:
     """One per-particle number a model reads, as a scene's material gives it.
 
-    `name` is a field of `codesign_mpm.scene.MaterialSpec` (the built-in models' parameters) or a
+    `name` is a field of `codesign_mpm.scene.spec.MaterialSpec` (the built-in models' parameters) or a
     key of its `parameters` mapping (a plugin model's own)."""
 
     name: str

@@ -10,7 +10,7 @@ the scene's `muscle_model`:
   tau += 4 s (|F f|^2 - 1 + a)(F f)(F f)^T, a passive fibre that also contracts for a > 0
   (its rest length is sqrt(1 - a)) and adds 8 s to the axial modulus.
 """
-from codesign_mpm.admissible import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio  # noqa: F401
+from codesign_mpm.materials.admissible import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio  # noqa: F401
 from codesign_mpm.materials.base import func
 
 MUSCLE_MODELS = ("active", "energy")

@@ -5,7 +5,7 @@ from codesign.hookspecs import hookimpl
 
 @hookimpl
 def codesign_register(registry) -> None:
-    from codesign_mpm.config import CoverConfig, EnvironmentPreset
+    from codesign_mpm.environment.config import CoverConfig, EnvironmentPreset
     from codesign_mpm.plugin import register_environment  # light: no Taichi until a scene is built
 
     registry.add(

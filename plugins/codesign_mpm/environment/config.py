@@ -15,8 +15,8 @@ import numpy as np
 
 from codesign.bodies import BODY_FILE_SUFFIXES, LIBRARY_BODIES
 from codesign.errors import RecipeError
-from codesign_mpm.admissible import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio
-from codesign_mpm.quality import QUALITY_NAMES, quality
+from codesign_mpm.materials.admissible import MAX_ACTIVE_STRESS_RATIO, active_stress_ratio, max_stiffness_ratio
+from codesign_mpm.scene.quality import QUALITY_NAMES, quality
 
 ROBOT_BODIES = ("box", "ellipsoid", *LIBRARY_BODIES, "file")
 COVER_KINDS = ("none", "sand", "snow", "clay", "mud", "water")
@@ -29,7 +29,7 @@ FLIP_DEFAULT = 0.99
 class CoverConfig:
     """Ground cover laid on the terrain, leaving out the cells the robot occupies.
 
-    The material fields are those of `codesign_mpm.scene.MaterialSpec`; each matters only
+    The material fields are those of `codesign_mpm.scene.spec.MaterialSpec`; each matters only
     to the kinds named in its help.
     """
 
@@ -50,7 +50,7 @@ class CoverConfig:
     particles_per_cell: Optional[int] = field(default=None, metadata={
         "choices": [1, 8, 27, 64], "help": "null = the environment's quality preset's"})
     settled: bool = field(default=True, metadata={
-        "help": "start loaded by its own weight (geostatic F, codesign_mpm.settle); false: stress-free, it "
+        "help": "start loaded by its own weight (geostatic F, codesign_mpm.environment.settle); false: stress-free, it "
                 "settles during the first frames"})
 
 
@@ -127,7 +127,7 @@ class RobotConfig:
         "choices": ["terrain", "cover"], "help": "terrain: stand on the terrain inside the cover (the paper); "
                                                 "cover: start on top of the cover layer"})
     settled: bool = field(default=False, metadata={
-        "help": "start at rest under its own weight (found by dynamic relaxation, codesign_mpm.settle.relax) "
+        "help": "start at rest under its own weight (found by dynamic relaxation, codesign_mpm.environment.settle.relax) "
                 "instead of stress-free, so a no-action episode stays where it is; a fixed body only (a design "
                 "that changes its shape or stiffness is an error)"})
 
@@ -163,7 +163,7 @@ def _vector(default: list[float], help: str) -> Any:
 
 @dataclass
 class TaskConfig:
-    """The task; each parameter matters to the tasks named in its help (codesign_mpm.tasks)."""
+    """The task; each parameter matters to the tasks named in its help (codesign_mpm.environment.tasks)."""
 
     name: str = field(default="movement_speed", metadata={
         "help": "movement_speed | turning | velocity_tracking | waypoint_following, or a registered task"})
@@ -179,7 +179,7 @@ class TaskConfig:
 
 @dataclass
 class ObservationConfig:
-    """Parts of the observation, in this order when switched on (codesign_mpm.observations)."""
+    """Parts of the observation, in this order when switched on (codesign_mpm.environment.observations)."""
 
     com: bool = field(default=True, metadata={"help": "robot centre of mass (3)"})
     velocity: bool = field(default=True, metadata={"help": "robot centre-of-mass velocity (3)"})
@@ -195,7 +195,7 @@ class ObservationConfig:
 
 @dataclass
 class IntegrityConfig:
-    """What an episode in which the robot tears apart (numerical fracture, codesign_mpm.integrity)
+    """What an episode in which the robot tears apart (numerical fracture, codesign_mpm.scene.integrity)
     gets. Torn: more than `tolerance` of its mass outside its largest connected piece."""
 
     on_tear: str = field(default="penalize", metadata={
@@ -212,7 +212,7 @@ class IntegrityConfig:
 @dataclass
 class LocomotionConfig:
     """A locomotion environment. `quality` sets dx, cfl, dtype, checkpoint_every and the robot's
-    and cover's particles_per_cell (codesign_mpm.quality); each of them written explicitly wins."""
+    and cover's particles_per_cell (codesign_mpm.scene.quality); each of them written explicitly wins."""
 
     quality: str = field(default="default", metadata={
         "choices": list(QUALITY_NAMES), "help": "numerical settings preset (docs/accuracy.md); explicit "
@@ -300,7 +300,7 @@ def check_config(config: LocomotionConfig) -> None:
                           ("task.offset", config.task.offset, 3)):
         if len(value) != n:
             raise environment_error(key, f"expected {n} numbers, got {list(value)}")
-    from codesign_mpm.scene import Scene  # the scene's wall band and action bound; it imports the materials
+    from codesign_mpm.scene.spec import Scene  # the scene's wall band and action bound; it imports the materials
 
     wall = Scene().boundary_cells * config.dx
     if config.terrain.height < wall:

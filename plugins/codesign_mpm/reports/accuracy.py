@@ -33,7 +33,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from codesign_mpm.quality import QUALITY, Quality
+from codesign_mpm.scene.quality import QUALITY, Quality
 
 SIZES = ("quick", "default")
 
@@ -272,8 +272,8 @@ def robot_env(environment: str, s: Setting, horizon: int, friction: Optional[flo
     substep); `contact`: the terrain's (nodes, surface or spring), `terrain` more of its keys (e.g.
     contact_stiffness);
     `settled`: the robot starts at rest under its weight (`robot.settled`), else stress-free."""
-    from codesign_mpm.config import FLIP_DEFAULT, PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
-    from codesign_mpm.env import LocomotionEnv
+    from codesign_mpm.environment.config import FLIP_DEFAULT, PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
+    from codesign_mpm.environment.env import LocomotionEnv
 
     preset = PRESETS[environment]
     config = PRESET_CONFIGS[environment](
@@ -522,9 +522,9 @@ def measure_one(problem: str, size: str, setting: Setting) -> dict:
 
 
 def _isolated(problem: str, size: str, setting: Setting) -> dict:
-    from codesign_mpm.bench import run_module
+    from codesign_mpm.reports.machine import run_module
 
-    record, error = run_module("codesign_mpm.accuracy", problem, size, json.dumps(asdict(setting)))
+    record, error = run_module("codesign_mpm.reports.accuracy", problem, size, json.dumps(asdict(setting)))
     return dict(failed=error) if error else record
 
 
@@ -536,7 +536,7 @@ def relative_error(value, answer) -> float:
 def run_problem(name: str, size: str, emit, isolate: bool = True, measured=lambda: None) -> list[dict]:
     """Measure every setting of one problem (calling `measured()` after each), then emit one record
     per setting with its error."""
-    from codesign_mpm.reports import machine_description
+    from codesign_mpm.reports.machine import machine_description
 
     machine = machine_description()
     spec = problem_sizes(name)[size]

@@ -12,12 +12,13 @@ import os
 import platform
 import re
 import resource
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, replace
 
 import numpy as np
+
+from codesign_mpm.reports.machine import run_module
 
 SCALES = {
     # the issue's scene (a): about 60k particles, dx 1/128 in the unit cube
@@ -176,7 +177,7 @@ def measure_batch(case: Case, members: int = 8, frames: int = 5, repeats: int = 
     """Throughput of `members` episodes in one BatchSimulator against the same episodes one after
     the other in one Simulator (reset between them, as `play` does), timed alternately."""
     from codesign_mpm import build_particles
-    from codesign_mpm.batch import BatchSimulator
+    from codesign_mpm.engine.batch import BatchSimulator
     from codesign_mpm.engine import Simulator
 
     scene = robot_scene(case)
@@ -359,21 +360,9 @@ def _machine() -> dict:
     return dict(machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version())
 
 
-def run_module(module: str, *args: str, environment: dict | None = None) -> tuple[dict | None, str | None]:
-    """Run `python -m MODULE ARGS` in a fresh process (its own Taichi program and peak memory; with
-    `environment`'s variables added) and return (the JSON record it printed last, None), or (None,
-    the last line of its error output)."""
-    done = subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True,
-                          env={**os.environ, **(environment or {})})
-    if done.returncode:
-        lines = done.stderr.strip().splitlines()
-        return None, lines[-1] if lines else f"exit status {done.returncode}"
-    return json.loads(done.stdout.strip().splitlines()[-1]), None
-
-
 def _in_subprocess(*args: str, environment: dict | None = None) -> dict:
-    """Run `python -m codesign_mpm.bench ARGS` and return its JSON record (or the error line)."""
-    record, error = run_module("codesign_mpm.bench", *args, environment=environment)
+    """Run `python -m codesign_mpm.reports.bench ARGS` and return its JSON record (or the error line)."""
+    record, error = run_module("codesign_mpm.reports.bench", *args, environment=environment)
     return dict(error=error) if error else record
 
 
@@ -435,8 +424,8 @@ OLD_MS_PER_SUBSTEP = {"ocean": 208.0, "desert": 245.0, "snow": 245.0, "clay": 24
 
 def environment_particles(name: str, scale: str):
     """The preset's scene and particles at `scale`, with the cover thick enough for its count."""
-    from codesign_mpm.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
-    from codesign_mpm.env import LocomotionEnv
+    from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
+    from codesign_mpm.environment.env import LocomotionEnv
 
     s, preset = ENV_SCALES[scale], PRESETS[name]
     target = s["particles"]
@@ -459,7 +448,7 @@ def measure_environment(name: str, scale: str, frames: int = 3, repeats: int = 3
     """Forward particle-substeps/s, substeps per control step and ms per substep of one preset."""
     from codesign_mpm.engine import Simulator
 
-    from codesign_mpm.settle import settled_state
+    from codesign_mpm.environment.settle import settled_state
 
     scene, particles = environment_particles(name, scale)
     t0 = time.perf_counter()

@@ -195,8 +195,8 @@ def muscle_ambiguity(study, root: Path, progress: bool = True) -> str:
     import ot
     import torch
 
-    from codesign_mpm.bridge import simulate
-    from codesign_mpm.episode import design_inputs
+    from codesign_mpm.environment.bridge import simulate
+    from codesign_mpm.environment.episode import design_inputs
 
     params = study.parameters
     env, _, full = _setup(study)

@@ -20,9 +20,9 @@ from dataclasses import replace
 import numpy as np
 
 from codesign_mpm.engine import Layout, Rollout, Simulator, TimeStep, time_step
-from codesign_mpm.engine.simulator import flip_share
-from codesign_mpm.sampling import Particles
-from codesign_mpm.scene import Scene
+from codesign_mpm.engine.time_step import flip_share
+from codesign_mpm.scene.sampling import Particles
+from codesign_mpm.scene.spec import Scene
 
 
 def stack(members: Sequence[Particles]) -> Particles:

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from codesign_mpm.config import ObservationConfig
-from codesign_mpm.tasks import Task
+from codesign_mpm.environment.config import ObservationConfig
+from codesign_mpm.environment.tasks import Task
 
 
 @dataclass

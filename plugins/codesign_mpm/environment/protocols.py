@@ -1,6 +1,6 @@
 """What a differentiable episode needs of its environment, as a protocol.
 
-`codesign_mpm.episode` runs an episode against this interface rather than against
+`codesign_mpm.environment.episode` runs an episode against this interface rather than against
 `LocomotionEnv` itself, so the environment module can offer `differentiable_episode` by
 importing `episode` while `episode` imports nothing of `env` (no import cycle).
 """
@@ -13,10 +13,10 @@ import numpy as np
 if TYPE_CHECKING:
     from codesign.interfaces import DesignFields
     from codesign_mpm.engine import Simulator
-    from codesign_mpm.integrity import IntegrityWatch
-    from codesign_mpm.observations import Observer
-    from codesign_mpm.sampling import Particles
-    from codesign_mpm.tasks import Task
+    from codesign_mpm.scene.integrity import IntegrityWatch
+    from codesign_mpm.environment.observations import Observer
+    from codesign_mpm.scene.sampling import Particles
+    from codesign_mpm.environment.tasks import Task
 
 
 class TaskStart(Protocol):
@@ -24,7 +24,7 @@ class TaskStart(Protocol):
 
 
 class EpisodeEnvironment(Protocol):
-    """The parts of `codesign_mpm.env.LocomotionEnv` that `codesign_mpm.episode.run_episode` uses."""
+    """The parts of `codesign_mpm.environment.env.LocomotionEnv` that `codesign_mpm.environment.episode.run_episode` uses."""
 
     base_particles: Particles
     config: Any  # LocomotionConfig: reads observation.occupancy

@@ -23,18 +23,18 @@ import torch
 from codesign.errors import DesignError, RecipeError
 from codesign.interfaces import Controller, DesignFields, DesignSpace, Environment, StepResult
 from codesign.registry import suggest
-from codesign_mpm.batch import BatchSimulator
-from codesign_mpm.config import (CoverConfig, EnvironmentPreset, LocomotionConfig, RobotConfig, TaskConfig,
+from codesign_mpm.engine.batch import BatchSimulator
+from codesign_mpm.environment.config import (CoverConfig, EnvironmentPreset, LocomotionConfig, RobotConfig, TaskConfig,
                                  check_config, environment_error)
 from codesign_mpm.engine import Simulator
-from codesign_mpm.episode import Episode, run_episode
-from codesign_mpm.integrity import MIN_THICKNESS_CELLS, IntegrityWatch, resolved_body, thinnest_cells
-from codesign_mpm.observations import Observer
-from codesign_mpm.sampling import Particles, build_particles, layer_ground
-from codesign_mpm.scene import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
-from codesign_mpm.settle import REST_SPEED, ROBOT_REST_SPEED, Relaxed, relax_scene, settled_state
-from codesign_mpm.tasks import TASKS, RobotFrame, Task, TaskContext
-from codesign_mpm.terrain import height_map
+from codesign_mpm.environment.episode import Episode, run_episode
+from codesign_mpm.scene.integrity import MIN_THICKNESS_CELLS, IntegrityWatch, resolved_body, thinnest_cells
+from codesign_mpm.environment.observations import Observer
+from codesign_mpm.scene.sampling import Particles, build_particles, layer_ground
+from codesign_mpm.scene.spec import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
+from codesign_mpm.environment.settle import REST_SPEED, ROBOT_REST_SPEED, Relaxed, relax_scene, settled_state
+from codesign_mpm.environment.tasks import TASKS, RobotFrame, Task, TaskContext
+from codesign_mpm.scene.terrain import height_map
 
 OCCUPANCY_THRESHOLD = 0.5
 """Particles whose occupancy is below this are removed: near-massless particles destabilise MPM."""
@@ -64,7 +64,7 @@ def make_task(config: TaskConfig) -> Task:
     if config.name not in TASKS:
         raise environment_error("task.name", f"{config.name!r} is not a task; {suggest(config.name, TASKS)}"
                                              f"allowed: {', '.join(sorted(TASKS))} (or a task registered with "
-                                             "codesign_mpm.tasks.register_task)")
+                                             "codesign_mpm.environment.tasks.register_task)")
     return TASKS[config.name](config)
 
 
@@ -171,10 +171,10 @@ class EpisodeState:
 
 
 class LocomotionEnv(Environment):
-    """A robot and a task (codesign_mpm.tasks) on an environment preset.
+    """A robot and a task (codesign_mpm.environment.tasks) on an environment preset.
 
     The observation is made of the parts switched on in `config.observation`
-    (codesign_mpm.observations; by default 9: centre of mass, its velocity, task information).
+    (codesign_mpm.environment.observations; by default 9: centre of mass, its velocity, task information).
     The reward of each control step is the task's. `differentiable_episode` runs a whole
     episode of a design and a controller as a torch loss (minus the summed reward).
 
@@ -232,7 +232,7 @@ class LocomotionEnv(Environment):
     def resolved(self, occupied: np.ndarray) -> np.ndarray:
         """What of an occupied set of workspace particles this environment simulates: the parts at
         least `integrity.MIN_THICKNESS_CELLS` grid cells thick, in one connected body (thinner parts
-        tear under actuation; `codesign_mpm.integrity.resolved_body`)."""
+        tear under actuation; `codesign_mpm.scene.integrity.resolved_body`)."""
         return resolved_body(self.base_particles.x, occupied, self.spacing, self.config.dx)
 
     def design_mask(self, occupancy: np.ndarray) -> np.ndarray:
@@ -431,7 +431,7 @@ class LocomotionEnv(Environment):
     def differentiable_episode(self, design: DesignFields, controller: Controller,
                                checkpoint_every: int | None = None) -> Episode:
         """Run an episode of `design` and `controller` as a torch loss (minus the summed reward)
-        whose `backward()` reaches the torch parameters behind both (codesign_mpm.episode)."""
+        whose `backward()` reaches the torch parameters behind both (codesign_mpm.environment.episode)."""
         return run_episode(self, design, controller, checkpoint_every)
 
     def grad_simulator(self, particles: Particles, start: dict[str, np.ndarray] | None = None) -> Simulator:

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from codesign_mpm.scene import Scene, TerrainSpec
+from codesign_mpm.scene.spec import Scene, TerrainSpec
 
 
 def _perlin(nx: int, nz: int, dx: float, frequency: float, rng: np.random.Generator) -> np.ndarray:

@@ -7,7 +7,7 @@ view time); the viewer has timelines to scrub and play, an entity tree whose par
 hidden one by one, and time-series plots beside the 3D view, which is what a gait needs. It is
 written headless (no display, GPU or browser), and the same file can be read back by tests.
 
-Episodes are replayed with `codesign_mpm.render` (the code behind `codesign render`), so a view
+Episodes are replayed with `codesign_mpm.viewing.render` (the code behind `codesign render`), so a view
 shows the same episode as a video. Each episode gets an entity tree of its own, its root
 ``/<run>/<iteration>`` shifted across z into a lane of its own when there are several (robots
 move along x, so lanes side by side keep them racing in view):
@@ -46,7 +46,7 @@ from codesign.artifacts import BEST, KEEP_THRESHOLD, PALETTE
 from codesign.errors import CodesignError
 from codesign.hookspecs import ViewRecording
 from codesign.runner import CONFIG_FILE
-from codesign_mpm.render import (
+from codesign_mpm.viewing.render import (
     ITERATIONS,
     PASSIVE,
     TERRAIN,

@@ -19,10 +19,10 @@ from scipy.spatial import cKDTree
 
 from codesign.bodies import Body, BodyError, Labels, library_body, load_body
 from codesign.geometry import grid_partition
-from codesign_mpm.integrity import MIN_THICKNESS_CELLS, thinnest_cells
+from codesign_mpm.scene.integrity import MIN_THICKNESS_CELLS, thinnest_cells
 from codesign_mpm.materials import MATERIALS, load_plugin_materials, spec_params
-from codesign_mpm.scene import BodySpec, Scene, SceneError, ShapeSpec
-from codesign_mpm.terrain import height_map
+from codesign_mpm.scene.spec import BodySpec, Scene, SceneError, ShapeSpec
+from codesign_mpm.scene.terrain import height_map
 
 
 @dataclass

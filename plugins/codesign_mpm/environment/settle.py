@@ -42,8 +42,8 @@ import numpy as np
 
 from codesign_mpm.engine import Simulator
 from codesign_mpm.materials import ID, MIN_HARDENING, lame
-from codesign_mpm.sampling import Particles
-from codesign_mpm.scene import Scene, SceneError
+from codesign_mpm.scene.sampling import Particles
+from codesign_mpm.scene.spec import Scene, SceneError
 
 SETTLING = ("water", "sand", "snow", "clay", "mud")
 """Materials that start settled in any body shape (layers of any material do too)."""

@@ -12,7 +12,7 @@ by muscle activation a = u . r_p (the action times the particle's membership): r
 a > 0 (contraction), blue for a < 0, grey where passive; orange (whatever the activation) where
 a robot particle has torn off its body: it lies outside the body's largest piece at that frame
 (by mass; by count for an export, which has no masses), pieces being the particles whose B-spline
-stencils share grid nodes (`codesign_mpm.integrity.pieces`; docs/integrity.md), and the frame's
+stencils share grid nodes (`codesign_mpm.scene.integrity.pieces`; docs/integrity.md), and the frame's
 label says the share of the robot's mass torn off ("torn 23.5% (orange)"). Water is drawn as a
 translucent veil over what lies behind it (`VEILED`), so a robot in the ocean or in shallow water
 stays in sight. Stills colour the
@@ -39,7 +39,7 @@ from codesign.errors import CodesignError
 
 if TYPE_CHECKING:
     from codesign.interfaces import Controller, DesignFields
-    from codesign_mpm.env import LocomotionEnv
+    from codesign_mpm.environment.env import LocomotionEnv
 
 CAMERAS: dict[str, tuple[float, float]] = {"side": (0.0, 0.0), "top": (0.0, 90.0), "oblique": (-35.0, 30.0)}
 """Camera name -> (azimuth about +y, elevation), degrees; `side` looks along +z at the x-y plane."""
@@ -89,8 +89,8 @@ class Recording:
         """(N,) which piece of its body each robot particle is in at `frame`: 0 the body's largest
         piece (by mass where `mass` is known, else by count), 1, 2, ... the pieces torn off it, by
         size; -1 off the robot. Pieces are particles whose stencils share grid nodes
-        (`codesign_mpm.integrity.pieces` at the recording's dx)."""
-        from codesign_mpm.integrity import pieces
+        (`codesign_mpm.scene.integrity.pieces` at the recording's dx)."""
+        from codesign_mpm.scene.integrity import pieces
 
         labels = np.full(len(self.material), -1, dtype=np.int64)
         body = self.body if self.body is not None else np.zeros(len(self.material), dtype=np.int64)
@@ -152,7 +152,7 @@ def record_episode(env: LocomotionEnv, design: DesignFields | None, controller: 
     particle positions and action; ``steps=0`` records only the design at rest (no simulation)."""
     import torch
 
-    from codesign_mpm.terrain import height_map
+    from codesign_mpm.scene.terrain import height_map
 
     if not hasattr(env, "design_particles") or not hasattr(env, "scene"):
         raise CodesignError(f"rendering needs an MPM locomotion environment (codesign_mpm), "
@@ -186,7 +186,7 @@ def record_episode(env: LocomotionEnv, design: DesignFields | None, controller: 
 
 
 def task_target(task: object, control_dt: float, horizon: int) -> dict[str, np.ndarray]:
-    """What a viewer can draw of a started task (`codesign_mpm.tasks`): its unit `direction` to move
+    """What a viewer can draw of a started task (`codesign_mpm.environment.tasks`): its unit `direction` to move
     along, the `up` axis to turn about, or the path's `waypoints` at the end of each control step;
     empty for a task that has none of these."""
     if hasattr(task, "position") and hasattr(task, "coefficients"):

@@ -23,10 +23,10 @@ import numpy as np
 import torch
 
 from codesign.interfaces import Controller, DesignFields
-from codesign_mpm.bridge import STATE_FIELDS, simulate, step_frame
-from codesign_mpm.protocols import EpisodeEnvironment
-from codesign_mpm.sampling import Particles
-from codesign_mpm.tasks import RobotFrame
+from codesign_mpm.environment.bridge import STATE_FIELDS, simulate, step_frame
+from codesign_mpm.environment.protocols import EpisodeEnvironment
+from codesign_mpm.scene.sampling import Particles
+from codesign_mpm.environment.tasks import RobotFrame
 
 DTYPE = torch.float64
 
@@ -38,7 +38,7 @@ class Episode:
     com: np.ndarray  # (T + 1, 3) robot centre of mass per frame
     actions: np.ndarray  # (T, K)
     penalty: float = 0.0  # what a tear costs (`LocomotionEnv.tear_outcome`), taken off the return
-    metrics: dict = field(default_factory=dict)  # the body's integrity (codesign_mpm.integrity)
+    metrics: dict = field(default_factory=dict)  # the body's integrity (codesign_mpm.scene.integrity)
 
     @property
     def episode_return(self) -> float:

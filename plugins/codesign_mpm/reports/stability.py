@@ -31,7 +31,7 @@ from typing import Callable
 
 import numpy as np
 
-from codesign_mpm.accuracy import GRAD_MAX_FRAMES, GRAD_SEGMENT, Setting, gradient_scene
+from codesign_mpm.reports.accuracy import GRAD_MAX_FRAMES, GRAD_SEGMENT, Setting, gradient_scene
 
 GRAVITY = 3.8
 
@@ -75,7 +75,7 @@ def bang_bang(k: int, amplitude: float = 0.3) -> Callable[[int], np.ndarray]:
 def _robot(s: Setting, **changes):
     """The shared robot simulator, its particles changed as the case says."""
     from codesign_mpm import build_particles
-    from codesign_mpm.config import FLIP_DEFAULT
+    from codesign_mpm.environment.config import FLIP_DEFAULT
     from codesign_mpm.engine import Simulator
 
     scene = replace(gradient_scene(s), flip=FLIP_DEFAULT)  # the FLIP share a recipe's robot runs with
@@ -133,9 +133,9 @@ def leaving_domain(s: Setting):
 def under_load(environment: str):
     """The robot fully actuated in an environment preset (dx 1/32): the cover carries its load."""
     def build(s: Setting):
-        from codesign_mpm.config import PRESET_CONFIGS, PRESETS, TerrainConfig
+        from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, TerrainConfig
         from codesign_mpm.engine import Simulator
-        from codesign_mpm.env import LocomotionEnv
+        from codesign_mpm.environment.env import LocomotionEnv
 
         preset = PRESETS[environment]
         config = PRESET_CONFIGS[environment](dx=1 / 32, horizon=50, dtype=s.dtype, cfl=s.cfl, terrain=TerrainConfig(
@@ -201,7 +201,7 @@ def run_case(name: str, size: str, s: Setting) -> dict:
     from codesign.errors import CodesignError
     from codesign_mpm import runtime
     from codesign_mpm.engine import SimulationError, State
-    from codesign_mpm.scene import SceneError
+    from codesign_mpm.scene.spec import SceneError
 
     runtime.reset()
     runtime.init_taichi("cpu", s.dtype)
@@ -273,9 +273,9 @@ def run_case(name: str, size: str, s: Setting) -> dict:
 
 
 def _isolated(name: str, size: str, s: Setting) -> dict:
-    from codesign_mpm.bench import run_module
+    from codesign_mpm.reports.machine import run_module
 
-    record, error = run_module("codesign_mpm.stability", name, size, json.dumps(asdict(s)))
+    record, error = run_module("codesign_mpm.reports.stability", name, size, json.dumps(asdict(s)))
     return dict(outcome="crash", message=error) if error else record
 
 
@@ -283,7 +283,7 @@ def run_stability_bench(cases: list[str], size: str, emit, isolate: bool = True,
                         progress: bool = True) -> list[dict]:
     """Emit one JSON object per (case, setting); returns them all."""
     from codesign.progress import progress_bar
-    from codesign_mpm.reports import machine_description
+    from codesign_mpm.reports.machine import machine_description
 
     machine = machine_description()
     rows = []
