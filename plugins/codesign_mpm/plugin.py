@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Optional
 
 from codesign.hookspecs import hookimpl
 from codesign.registry import PluginRegistrar
-from codesign_mpm.environment.config import PRESETS, EnvironmentPreset, LocomotionConfig, preset_config
+from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, EnvironmentPreset, LocomotionConfig, preset_config
 
 if TYPE_CHECKING:
     import typer
@@ -38,7 +38,8 @@ def register_environment(registry: PluginRegistrar, name: str, preset: Environme
     """Add an MPM locomotion environment `name`: the engine's scene (terrain, robot, task) with the
     preset's terrain friction, cover and robot stiffness as its defaults. Call it from a plugin's
     `codesign_register`; `codesign render`, `view` and `eval` take its runs as the built-in ones'."""
-    registry.add("environment", name, PresetEnvironment(preset), preset_config(name, preset), preset.description)
+    config = PRESET_CONFIGS[name] if PRESETS.get(name) is preset else preset_config(name, preset)  # built-ins: made once
+    registry.add("environment", name, PresetEnvironment(preset), config, preset.description)
 
 
 def is_mpm_environment(name: str) -> bool:
