@@ -52,7 +52,7 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
     _memoize_source_positions()
     if _current is not None:
         _end_program()
-    arch_obj = {"cpu": ti.cpu, "cuda": ti.cuda, "gpu": ti.gpu, "vulkan": ti.vulkan, "metal": ti.metal}[arch]
+    arch_obj = _gpu() if arch == "gpu" else {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan, "metal": ti.metal}[arch]
     cache_dir = os.environ.get("CODESIGN_TAICHI_CACHE")  # default: Taichi's own (~/.cache/taichi)
     ti.init(
         arch=arch_obj,
@@ -67,6 +67,21 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
     )
     _current = wanted
     generation += 1
+
+
+def _gpu():
+    """`arch: gpu`: the first of CUDA, Metal and Vulkan this machine has, else the CPU with a warning.
+    Not Taichi's own `ti.gpu`, whose probe of OpenGL crashes the process on a machine without a
+    display (a segmentation fault, no message); the engine does not target OpenGL."""
+    import warnings
+
+    from taichi.lang.misc import is_arch_supported
+
+    for arch in (ti.cuda, ti.metal, ti.vulkan):
+        if is_arch_supported(arch):
+            return arch
+    warnings.warn("arch 'gpu': this machine has no CUDA, Metal or Vulkan GPU; running on the CPU", stacklevel=3)
+    return ti.cpu
 
 
 def _memoize_source_positions() -> None:

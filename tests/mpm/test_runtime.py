@@ -58,3 +58,20 @@ def test_ndarrays_outliving_their_program_are_never_collected():
         array.fill(7.0)
     assert all((array.to_numpy() == 1.0).all() for array in live)  # without the guard: 1-4 of 2000 not
     runtime.reset()
+
+
+def test_arch_gpu_without_a_gpu_runs_on_the_cpu_with_a_warning_instead_of_crashing():
+    """Taichi's own `ti.gpu` probes OpenGL, which kills a process on a machine without a display (a
+    segmentation fault); `arch: gpu` takes CUDA, Metal or Vulkan where there is one, else the CPU
+    and says so. In a process of its own: it starts a Taichi program."""
+    import subprocess
+    import sys
+
+    code = ("import taichi as ti; from codesign_mpm import runtime; runtime.init_taichi('gpu'); "
+            "print(ti.lang.impl.current_cfg().arch)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    arch = done.stdout.strip().splitlines()[-1]
+    assert arch in ("Arch.x64", "Arch.arm64", "Arch.cuda", "Arch.metal", "Arch.vulkan")
+    if arch in ("Arch.x64", "Arch.arm64"):
+        assert "no CUDA, Metal or Vulkan GPU; running on the CPU" in done.stderr
