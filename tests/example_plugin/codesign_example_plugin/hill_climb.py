@@ -21,7 +21,6 @@ class HillClimb(Optimizer):
     def __init__(self, config: HillClimbConfig) -> None:
         self.config = config
         self.iterations = config.iterations
-        self.best_return = -float("inf")
 
     def setup(self, environment, representation, controller, *, rng: np.random.Generator, run_dir: Path) -> None:
         self.environment, self.representation, self.controller = environment, representation, controller
@@ -40,26 +39,23 @@ class HillClimb(Optimizer):
                     p.add_(torch.as_tensor(self.rng.normal(0.0, self.config.sigma, tuple(p.shape)), dtype=p.dtype))
         design = self.representation()
         record = play(self.environment, design, self.controller, seed=int(self.rng.integers(2**31)))
-        if record.episode_return > self.best_return:
-            self.best_return = record.episode_return
-            self.keeper.offer(record.episode_return, design, record, self.iteration)
-        else:
+        if not self.keeper.offer(record.episode_return, design, record, self.iteration):  # worse: step back
             with torch.no_grad():
                 for p, old in zip(params, before):
                     p.copy_(old)
         self.iteration += 1
-        return {"episode_return": record.episode_return, "best_return": self.best_return,
+        return {"episode_return": record.episode_return, "best_return": self.keeper.best_return,
                 **record.metrics}  # what the environment reports (e.g. the body's integrity)
 
     def state_dict(self) -> dict:
         """Everything a resumed run needs: the controller's parameters, the counters."""
-        return {"iteration": self.iteration, "best_return": self.best_return,
+        return {"iteration": self.iteration, "best_return": self.keeper.best_return,
                 "params": [p.detach().clone() for p in self.controller.parameters()]}
 
     def load_state_dict(self, state: dict) -> None:
         import torch
 
-        self.iteration, self.best_return = state["iteration"], state["best_return"]
+        self.iteration, self.keeper.best_return = state["iteration"], state["best_return"]
         with torch.no_grad():
             for p, saved in zip(self.controller.parameters(), state["params"]):
                 p.copy_(saved)
