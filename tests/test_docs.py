@@ -1,5 +1,6 @@
 """The documents name only what exists, and the README's test command is the one CI runs."""
 
+import functools
 import re
 from pathlib import Path
 
@@ -38,8 +39,9 @@ def test_every_link_and_named_file_of_a_page_exists(page):
 USER_PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]  # the dated logs keep their history
 
 
+@functools.cache
 def _commands() -> dict[str, set[str]]:
-    """Every `codesign` command, with the subcommands of a group."""
+    """Every `codesign` command, with the subcommands of a group (built once for every page)."""
     import click
     import typer
 
