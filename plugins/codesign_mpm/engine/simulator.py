@@ -620,6 +620,11 @@ class Simulator:
         self.k.act.from_numpy(act.astype(self.np_real))
         self.k.com_x.fill(0)
         self.k.com_v.fill(0)
+        tracked = self._probe_density > 0
+        x0 = (self.particles.x if start is None else start.x)[tracked]
+        origin = (0.5 * (x0.min(0) + x0.max(0))).astype(self.np_real)  # near the body: any fixed point will do
+        self.k.probe_origin[None] = origin
+        self._probe_origin = origin.astype(np.float64)
         self._T = T
         self._checkpoints.clear()
         self._checkpoints.memory_bytes = CHECKPOINT_MEMORY_BYTES  # read per rollout, as GRID_STORE_BYTES is
@@ -655,7 +660,7 @@ class Simulator:
         self._rollout_changes = self._changes
         self.frame = T
         self._tracked_mass = float(self._probe_density @ self.particles.volume)
-        self._com = (self.k.com_x.to_numpy()[:T + 1] / self._tracked_mass,
+        self._com = (self.k.com_x.to_numpy()[:T + 1] / self._tracked_mass + self._probe_origin,
                      self.k.com_v.to_numpy()[:T + 1] / self._tracked_mass)
         return Rollout(self._com[0].astype(np.float64), self._com[1].astype(np.float64), final.x, final.v, final)
 
@@ -699,11 +704,11 @@ class Simulator:
         frame_of, substeps = self._substep_frame, self.frame_substeps
         for f in (self.k.vol, self.k.E, self.k.muscle, self.k.fiber, self.k.act, self.k.com_x, self.k.com_v):
             f.grad.fill(0)
-        # com = S / M with S the probe's mass-weighted sum and M the tracked mass:
-        # dL/dS = g / M goes through the probe kernel, dL/dM = -sum(g . com) / M is added below
+        # com = S / M (+ the probe's origin for com_x) with S the probe's mass-weighted sum and M the
+        # tracked mass: dL/dS = g / M goes through the probe kernel, dL/dM = -sum(g . S / M) / M is added below
         rows, M = self.max_frames + 1, self._tracked_mass
         dL_dM = 0.0
-        for field, g, com in ((self.k.com_x, com_x, self._com[0]), (self.k.com_v, com_v, self._com[1])):
+        for field, g, com in ((self.k.com_x, com_x, self._com[0] - self._probe_origin), (self.k.com_v, com_v, self._com[1])):
             full = np.zeros((rows, 3), r)
             if g is not None:
                 g = np.asarray(g, dtype=np.float64).reshape(T + 1, 3)

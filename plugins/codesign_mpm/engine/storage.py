@@ -132,6 +132,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         self.muscle_ratio = scalar((n,))
         self.drive_bar = scalar((n,))  # d loss / d activation of each particle's muscle (the hand adjoints)
         self.probe_w = scalar((n,))
+        self.probe_origin = vec(3, ())  # the probe sums m (x - origin): float32 keeps the motion's digits
         self.act = vec(K, (rows,), True)
         self.com_x = vec(3, (rows,), True)
         self.com_v = vec(3, (rows,), True)
@@ -332,10 +333,11 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
 
     @ti.kernel
     def _probe(self, s: ti.i32, t: ti.i32, n: ti.i32):
-        """Mass-weighted sums of the tracked particles' x and v (divided by their mass later)."""
+        """Mass-weighted sums of the tracked particles' x - probe_origin and v (divided by their mass
+        and the origin added back later, in float64)."""
         for p in range(n):
             m = self.probe_w[p] * self.vol[p]
-            self.com_x[t] += m * self.x[s, p]
+            self.com_x[t] += m * (self.x[s, p] - self.probe_origin[None])
             self.com_v[t] += m * self.v[s, p]
 
     @ti.kernel
