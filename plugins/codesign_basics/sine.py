@@ -23,6 +23,8 @@ class SineController(Controller):
     observation is ignored. Calls return a torch tensor of shape (K,).
     """
 
+    open_loop = True  # the observation is ignored: an episode is one checkpointed rollout
+
     def __init__(self, config: SineConfig) -> None:
         self.config = config
         self.alpha: torch.Tensor | None = None

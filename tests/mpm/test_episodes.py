@@ -94,6 +94,29 @@ def test_loss_is_minus_the_return_and_its_gradient_matches_finite_differences(en
         torch.set_default_dtype(torch.float32)
 
 
+class PerStepSine(SineController):
+    open_loop = False  # the same gait forced onto the per-step path
+
+
+def test_a_sine_episode_is_one_rollout_with_the_per_step_paths_loss_and_gradient(env):
+    torch.set_default_dtype(torch.float64)
+    try:
+        rep, sine = parts(env, SineController(SineConfig(init_std=1.0)))
+        _, per_step = parts(env, PerStepSine(SineConfig(init_std=1.0)))
+        runs = []
+        for controller in (sine, per_step):
+            before = env._grad_sim.rollouts if env._grad_sim is not None else 0
+            episode = env.differentiable_episode(rep(), controller)
+            episode.loss.backward()
+            runs.append((float(episode.loss), controller.alpha.grad.clone(), env._grad_sim.rollouts - before))
+        (loss, grad, rollouts), (per_step_loss, per_step_grad, per_step_rollouts) = runs
+        assert rollouts == 1 and per_step_rollouts >= HORIZON  # one a step, more where backward replays
+        assert loss == pytest.approx(per_step_loss, rel=1e-9, abs=1e-12)
+        assert torch.allclose(grad, per_step_grad, rtol=1e-7, atol=1e-9 * per_step_grad.abs().max().item())
+    finally:
+        torch.set_default_dtype(torch.float32)
+
+
 def test_a_task_that_reads_particles_takes_the_per_step_path_with_an_open_loop_controller():
     env = make_env("turning")
     torch.set_default_dtype(torch.float64)
