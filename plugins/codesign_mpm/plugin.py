@@ -164,11 +164,16 @@ def codesign_cli(app: typer.Typer) -> None:
     bench = typer.Typer(help="Benchmarks that print JSON lines to compare run to run.", no_args_is_help=True)
     app.add_typer(bench, name="bench")
 
+    def _check_arch(arch: str) -> None:
+        if arch not in ("cpu", "cuda"):
+            raise typer.BadParameter(f"--arch {arch!r}: choose from cpu, cuda")
+
     @bench.command("environments")
     def bench_environments(
         scale: list[str] = typer.Option(["small"], "--scale", help="small (dx 1/64, about 18k particles) and/or "
                                         "paper (dx 1/128, about 144k particles, 130k in the ocean); repeatable."),
         env: list[str] = typer.Option(list(PRESETS), "--env", help="Environment preset(s); repeatable."),
+        arch: str = typer.Option("cpu", "--arch", help="cpu or cuda."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
     ) -> None:
         """Forward throughput of one scene per environment: particle-substeps/s, substeps per
@@ -181,8 +186,8 @@ def codesign_cli(app: typer.Typer) -> None:
         for name in env:
             if name not in PRESETS:
                 raise typer.BadParameter(f"--env {name!r}: choose from {', '.join(PRESETS)}")
-        run_environment_bench(scale, env, _echo_json,
-                              progress=not no_progress)
+        _check_arch(arch)
+        run_environment_bench(scale, env, _echo_json, progress=not no_progress, arch=arch)
 
     @bench.command("accuracy")
     def bench_accuracy(
@@ -252,26 +257,33 @@ def codesign_cli(app: typer.Typer) -> None:
     @bench.command("engine")
     def bench_engine(
         scale: list[str] = typer.Option(["small"], "--scale", help="tiny (about 1k particles, dx 1/32), small "
-                                        "(about 7.7k, dx 1/64) and/or paper (about 61k, dx 1/128); repeatable."),
+                                        "(about 7.7k, dx 1/64), paper (about 61k, dx 1/128) and/or large "
+                                        "(about 490k, dx 1/128); repeatable."),
+        measure: list[str] = typer.Option([], "--measure", help="forward, float64, dense, backward, batch, "
+                                          "scatter, adaptive, flip, contact; repeatable; default: all."),
         frames: int = typer.Option(200, "--frames", min=1, help="Frames of the differentiable episode."),
+        members: int = typer.Option(8, "--members", min=2, help="Episodes in the batch measurement."),
         profile: bool = typer.Option(False, "--profile", help="Instead: where a substep's time goes (kernel "
                                      "launches, Python-side field accesses, each kernel's share, the rest), "
                                      "forward and forward + backward, under Taichi's kernel profiler."),
-        arch: str = typer.Option("cpu", "--arch", help="With --profile: cpu or cuda."),
+        arch: str = typer.Option("cpu", "--arch", help="cpu or cuda."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
     ) -> None:
         """Forward particle-substeps/s (float32, float64, dense grid), (forward + backward) / forward
         with checkpointing, peak memory of a differentiable episode, first-call (compile) time, and
         8 episodes in one batched simulator against the same 8 one after the other, and p2g's
         private-grid scatter against atomic adds; or (--profile) where a substep's time goes."""
-        from codesign_mpm.reports.bench import SCALES, run_engine_bench, run_profile_bench
+        from codesign_mpm.reports.bench import ENGINE_MEASURES, SCALES, run_engine_bench, run_profile_bench
 
         for s in scale:
             if s not in SCALES:
                 raise typer.BadParameter(f"--scale {s!r}: choose from {', '.join(SCALES)}")
-        if arch not in ("cpu", "cuda"):
-            raise typer.BadParameter(f"--arch {arch!r}: choose from cpu, cuda")
+        for m in measure:
+            if m not in ENGINE_MEASURES:
+                raise typer.BadParameter(f"--measure {m!r}: choose from {', '.join(ENGINE_MEASURES)}")
+        _check_arch(arch)
         if profile:
             run_profile_bench(scale, arch, _echo_json, progress=not no_progress)
         else:
-            run_engine_bench(scale, frames, _echo_json, progress=not no_progress)
+            run_engine_bench(scale, frames, _echo_json, progress=not no_progress, arch=arch,
+                             measures=tuple(measure or ENGINE_MEASURES), members=members)

@@ -27,7 +27,13 @@ SCALES = {
     "small": dict(dx=1 / 64, robot=[0.25, 0.12, 0.12], terrain=0.1),
     # the quick start's size: about 1k particles, dx 1/32 (populations of small scenes)
     "tiny": dict(dx=1 / 32, robot=[0.25, 0.12, 0.12], terrain=0.1),
+    # a GPU's size: scene (a)'s robot twice as large each way, about 490k particles, dx 1/128
+    "large": dict(dx=1 / 128, robot=[0.5, 0.24, 0.24], terrain=0.05),
 }
+ENGINE_MEASURES = ("forward", "float64", "dense", "backward", "batch", "scatter", "adaptive", "flip", "contact")
+"""What `codesign bench engine` measures per scale: forward float32 with the grid over the particles'
+box, in float64, over the dense grid; then (float32) the differentiable episode, a batch against the
+same episodes one after the other, and the three variants timed against their alternative."""
 
 
 @dataclass
@@ -384,31 +390,22 @@ def run_profile_bench(scales: list[str], arch: str, emit, progress: bool = True)
             bar.update(1)
 
 
-def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True) -> None:
+def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True, arch: str = "cpu",
+                     measures: tuple[str, ...] = ENGINE_MEASURES, members: int = 8) -> None:
     """Emit one JSON object per measurement (see docs/performance.md for what each means)."""
     from codesign.progress import progress_bar
 
     machine = _machine()
-    with progress_bar(total=9 * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
+    options = {"backward": dict(frames=frames, repeats=3), "batch": dict(members=members)}
+    with progress_bar(total=len(measures) * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
         for scale in scales:
-            for case in (Case(scale, "float32"), Case(scale, "float64"), Case(scale, "float32", "full")):
-                emit(dict(scale=scale, dtype=case.dtype, grid_region=case.grid_region,
-                          **_run_isolated("forward", case), **machine))
+            for measure in measures:
+                dtype = "float64" if measure == "float64" else "float32"
+                case = Case(scale, dtype, "full" if measure == "dense" else "bbox", arch)
+                kind = "forward" if measure in ("float64", "dense") else measure
+                emit(dict(scale=scale, dtype=dtype, grid_region=case.grid_region, arch=arch,
+                          **_run_isolated(kind, case, **options.get(measure, {})), **machine))
                 bar.update(1)
-            case = Case(scale, "float32")
-            emit(dict(scale=scale, dtype="float32", **_run_isolated("backward", case, frames=frames, repeats=3),
-                      **machine))
-            bar.update(1)
-            emit(dict(scale=scale, dtype="float32", **_run_isolated("batch", case), **machine))
-            bar.update(1)
-            emit(dict(scale=scale, dtype="float32", **_run_isolated("scatter", case), **machine))
-            bar.update(1)
-            emit(dict(scale=scale, dtype="float32", **_run_isolated("adaptive", case), **machine))
-            bar.update(1)
-            emit(dict(scale=scale, dtype="float32", **_run_isolated("flip", case), **machine))
-            bar.update(1)
-            emit(dict(scale=scale, dtype="float32", **_run_isolated("contact", case), **machine))
-            bar.update(1)
 
 
 # `codesign bench environments`: one scene per environment preset, forward throughput.
@@ -422,14 +419,14 @@ OLD_MS_PER_SUBSTEP = {"ocean": 208.0, "desert": 245.0, "snow": 245.0, "clay": 24
 """The old SoftZoo code at the paper's scale (41 substeps per control step), for comparison."""
 
 
-def environment_particles(name: str, scale: str):
+def environment_particles(name: str, scale: str, arch: str = "cpu"):
     """The preset's scene and particles at `scale`, with the cover thick enough for its count."""
     from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
     from codesign_mpm.environment.env import LocomotionEnv
 
     s, preset = ENV_SCALES[scale], PRESETS[name]
     target = s["particles"]
-    config = PRESET_CONFIGS[name](dx=s["dx"], size=[1.0, 0.5, 0.5], terrain=TerrainConfig(
+    config = PRESET_CONFIGS[name](dx=s["dx"], size=[1.0, 0.5, 0.5], arch=arch, terrain=TerrainConfig(
         height=0.05, friction=preset.friction), robot=RobotConfig(size=[0.25, 0.12, 0.12], position=[0.5, 0.25],
                                                                  youngs_modulus=preset.robot_youngs_modulus))
     if name == "ocean":  # water deep enough to cover the robot, one particle per cell
@@ -444,13 +441,13 @@ def environment_particles(name: str, scale: str):
     return env.scene, env.particles
 
 
-def measure_environment(name: str, scale: str, frames: int = 3, repeats: int = 3) -> dict:
+def measure_environment(name: str, scale: str, arch: str = "cpu", frames: int = 3, repeats: int = 3) -> dict:
     """Forward particle-substeps/s, substeps per control step and ms per substep of one preset."""
     from codesign_mpm.engine import Simulator
 
     from codesign_mpm.environment.settle import settled_state
 
-    scene, particles = environment_particles(name, scale)
+    scene, particles = environment_particles(name, scale, arch)
     t0 = time.perf_counter()
     F, jp = settled_state(scene, particles)  # the environments' default start: its whole cost
     settle_s = time.perf_counter() - t0
@@ -467,7 +464,7 @@ def measure_environment(name: str, scale: str, frames: int = 3, repeats: int = 3
             sim.step(rng.uniform(-0.3, 0.3, sim.n_actuators))
         seconds.append((time.perf_counter() - t0) / (frames * sim.timestep.substeps))
     per_substep = float(np.median(seconds))
-    record = dict(measure="environment", environment=name, particles=sim.n,
+    record = dict(measure="environment", environment=name, arch=arch, particles=sim.n,
                   materials=sorted({b.material.kind for b in scene.bodies}),
                   substeps_per_control_step=sim.timestep.substeps, dt=sim.timestep.dt,
                   ms_per_substep=round(1e3 * per_substep, 3), particle_substeps_per_s=sim.n / per_substep,
@@ -479,20 +476,21 @@ def measure_environment(name: str, scale: str, frames: int = 3, repeats: int = 3
     return record
 
 
-def run_environment_bench(scales: list[str], names: list[str], emit, progress: bool = True) -> None:
+def run_environment_bench(scales: list[str], names: list[str], emit, progress: bool = True,
+                          arch: str = "cpu") -> None:
     """Emit one JSON object per (scale, environment), each measured in its own process."""
     from codesign.progress import progress_bar
 
     machine = _machine()
     cases = [(scale, name) for scale in scales for name in names]
     for scale, name in progress_bar(cases, desc="bench environments", unit="env", show=progress):
-        record = {"measure": "environment", "environment": name, **_in_subprocess("environment", name, scale)}
+        record = {"measure": "environment", "environment": name, **_in_subprocess("environment", name, scale, arch)}
         emit(dict(scale=scale, **record, **machine))
 
 
 if __name__ == "__main__":  # one isolated measurement, used by _run_isolated / run_environment_bench
     if sys.argv[1] == "environment":
-        print(json.dumps(measure_environment(sys.argv[2], sys.argv[3])))
+        print(json.dumps(measure_environment(*sys.argv[2:5])))
     elif sys.argv[1] == "compile":
         print(json.dumps(measure_compile(sys.argv[2], sys.argv[3])))
     else:
