@@ -138,10 +138,32 @@ def scatter_copies() -> int:
         if not forced.isdigit() or int(forced) < 1:
             raise ValueError(f"CODESIGN_SCATTER_COPIES must be a positive integer, got {forced!r}")
         return int(forced)
-    cfg = impl.current_cfg()
-    if cfg.arch != ti.x64 and cfg.arch != ti.arm64:
+    if on_gpu():
         return 1
-    return max(1, min(cfg.cpu_max_num_threads, MAX_SCATTER_COPIES))
+    return max(1, min(impl.current_cfg().cpu_max_num_threads, MAX_SCATTER_COPIES))
+
+
+FOLD_THREADS = 8192
+"""On a GPU a loop that reduces into one value (the particles' box, the guard's maxima) runs on this
+many threads, each folding every FOLD_THREADS-th particle before one atomic: Taichi's own reduction
+of such a loop ends with an atomic from each thread of a grid sized for the whole GPU (about 5 ms a
+substep on an H200 for the box's six, whatever the particle count)."""
+
+
+def on_gpu() -> bool:
+    """Whether Taichi runs on a GPU (not a CPU backend)."""
+    from taichi.lang import impl
+
+    return impl.current_cfg().arch not in (ti.x64, ti.arm64)
+
+
+def fold_reductions() -> bool:
+    """Whether reductions into one value fold per thread first (FOLD_THREADS): on a GPU, or where
+    the environment variable CODESIGN_FOLD_REDUCTIONS says 1 or 0 (tests compare the two on a CPU)."""
+    forced = os.environ.get("CODESIGN_FOLD_REDUCTIONS")
+    if forced not in (None, "", "0", "1"):
+        raise ValueError(f"CODESIGN_FOLD_REDUCTIONS must be 0 or 1, got {forced!r}")
+    return forced == "1" if forced else on_gpu()
 
 
 def reset() -> None:

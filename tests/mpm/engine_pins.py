@@ -1,9 +1,11 @@
 """Pinned trajectories and gradients of a few small scenes, so that moving the engine's code can be
 checked to change nothing (tests/mpm/test_engine_pins.py).
 
-Run as a script to (re)generate tests/mpm/data/engine_pins.npz from the engine as it is:
+Run as a script to (re)generate tests/mpm/data/engine_pins.npz from the engine as it is, or to
+compare the engine on another backend with the stored values (within the test's tolerances):
 
     PYTHONPATH=.:plugins python tests/mpm/engine_pins.py
+    PYTHONPATH=.:plugins python tests/mpm/engine_pins.py --compare --arch cuda
 
 Scenes (dx 1/32, a few hundred particles per body, 3 frames):
 
@@ -28,6 +30,10 @@ from codesign_mpm import BodySpec, MaterialSpec, MuscleSpec, Scene, ShapeSpec, T
 DATA = Path(__file__).parent / "data" / "engine_pins.npz"
 DX = 1 / 32
 T = 3  # frames
+STATE_TOLERANCE = 1e-5
+GRADIENT_TOLERANCE = 1e-3
+ROUNDOFF_GRADIENT = 1e-18  # an array of gradients this small everywhere is zero up to round-off (mixed_f64's J_p: 3e-22)
+ARCH = "cpu"  # the backend `compute` runs on (`--arch`)
 GRADIENT_FIELDS = ("actions", "volume", "youngs_modulus", "muscle", "fiber", "x0", "v0", "C0", "F0", "Jp0")
 
 
@@ -43,7 +49,7 @@ def _robot(**material) -> BodySpec:
 
 
 def _scene(bodies, **kw) -> Scene:
-    return Scene(size=[1.0, 0.5, 0.5], dx=DX, bodies=bodies,
+    return Scene(size=[1.0, 0.5, 0.5], dx=DX, bodies=bodies, arch=ARCH,
                  terrain=TerrainSpec(kind="perlin", height=0.1, amplitude=0.02, friction=0.4), **kw)
 
 
@@ -120,8 +126,36 @@ def compute() -> dict[str, np.ndarray]:
     return {f"{case}/{name}": value for case, run in cases.items() for name, value in run().items()}
 
 
+def compare(stored: dict[str, np.ndarray], now: dict[str, np.ndarray]) -> list[str]:
+    """The keys whose arrays differ at all; raises AssertionError where one differs beyond the
+    tolerances (states 1e-5, gradients 1e-3 of the array's largest magnitude) or in substeps."""
+    assert sorted(now) == sorted(stored)
+    different = []
+    for key, expected in stored.items():
+        got = now[key]
+        assert got.shape == expected.shape and got.dtype == expected.dtype, key
+        if np.array_equal(got, expected):
+            continue
+        different.append(key)
+        if key.endswith("substeps"):
+            raise AssertionError(f"{key}: substeps {got.tolist()} != {expected.tolist()}")
+        gradient = key.split("/")[1].startswith("grad_")
+        tolerance = GRADIENT_TOLERANCE if gradient else STATE_TOLERANCE
+        scale = float(np.abs(expected).max(initial=0.0))
+        error = float(np.abs(got.astype(np.float64) - expected).max())
+        assert error <= tolerance * scale + (ROUNDOFF_GRADIENT if gradient else 0.0), (key, error, scale)
+    return different
+
+
 if __name__ == "__main__":
+    if "--arch" in sys.argv:
+        ARCH = sys.argv[sys.argv.index("--arch") + 1]
     pins = compute()
-    DATA.parent.mkdir(exist_ok=True)
-    np.savez_compressed(DATA, **pins)
-    print(f"wrote {DATA} ({DATA.stat().st_size / 1024:.0f} KiB, {len(pins)} arrays)", file=sys.stderr)
+    if "--compare" in sys.argv:
+        different = compare(dict(np.load(DATA)), pins)
+        print(f"engine pins on {ARCH}: {len(pins) - len(different)} of {len(pins)} arrays bitwise equal, "
+              f"the rest within tolerance: {', '.join(different)}")
+    else:
+        DATA.parent.mkdir(exist_ok=True)
+        np.savez_compressed(DATA, **pins)
+        print(f"wrote {DATA} ({DATA.stat().st_size / 1024:.0f} KiB, {len(pins)} arrays)", file=sys.stderr)

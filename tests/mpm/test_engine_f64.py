@@ -232,6 +232,43 @@ def test_the_private_scatter_equals_the_atomic_one(sim, actions, weights, monkey
         np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12 * np.abs(a).max(), err_msg=name)
 
 
+def test_folded_reductions_give_the_same_box_guard_states_and_gradients(sim, actions, weights, monkeypatch):
+    """The GPU's reductions (each of runtime.FOLD_THREADS threads folds its particles, then one
+    atomic) find the same particle box and guard values as one atomic per particle: min, max and
+    counts do not depend on their order, so states and gradients are bit for bit the same, and the
+    guard counts broken particles and names the first alike."""
+    wx = np.random.default_rng(3).normal(size=(sim.n, 3)) / sim.n
+    out = {}
+    for fold in ("0", "1"):
+        monkeypatch.setenv("CODESIGN_FOLD_REDUCTIONS", fold)
+        other = Simulator(sim.scene, sim.particles, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=64)
+        assert other.layout.folded == (fold == "1")
+        try:
+            final = other.rollout(actions)
+            grads = other.backward(com_x=weights["com_x"], com_v=weights["com_v"], x=wx)
+            other.step(actions[0], frames=2)  # the one-launch forward substep
+            other.k._bounds(0, other.n)
+            box = [other.k.lo[d][None] for d in range(3)] + [other.k.hi[d][None] for d in range(3)]
+            guard = (other.k.max_speed[None], other.k.max_wave[None])
+            state = other.particles_state()
+            broken = [np.ascontiguousarray(a) for a in state]
+            broken[0][[7, 9]] = np.nan
+            other.k._load_state(0, other.n, *broken)
+            other.k._check(0, other.n)
+            assert (other.k.n_bad[None], other.k.first_bad[None]) == (2, 7)
+            out[fold] = (final, grads, state, box, guard)
+        finally:
+            other.close()
+    (final0, grads0, state0, box0, guard0), (final1, grads1, state1, box1, guard1) = out["0"], out["1"]
+    assert box1 == box0 and guard1 == guard0
+    for name in ("x", "v", "C", "F"):
+        np.testing.assert_array_equal(getattr(final1.final, name), getattr(final0.final, name), err_msg=name)
+    for a, b in zip(state1, state0):
+        np.testing.assert_array_equal(a, b)
+    for name in ("actions", "youngs_modulus", "muscle", "volume", "x0", "v0"):
+        np.testing.assert_array_equal(getattr(grads1, name), getattr(grads0, name), err_msg=name)
+
+
 def test_torch_bridge_passes_gradcheck(sim):
     torch = pytest.importorskip("torch")
     from codesign_mpm.environment.bridge import simulate

@@ -157,7 +157,7 @@ class Simulator:
             has_terrain=scene.terrain.kind != "none",
             boundary_cells=scene.boundary_cells,
             requires_grad=requires_grad,
-            scatter_copies=runtime.scatter_copies(),
+            scatter_copies=runtime.scatter_copies(), folded=runtime.fold_reductions(),
             has_flip=(scene.flip > 0 or scene.pic_time is not None) and any(m in flip_models() for m in models),
             surface_contact=scene.terrain.kind != "none" and scene.terrain.contact in ("surface", "spring"),
             contact_memory=scene.terrain.kind != "none" and scene.terrain.contact == "spring",

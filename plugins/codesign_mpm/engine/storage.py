@@ -24,6 +24,7 @@ import taichi as ti
 from taichi.lang import impl
 
 from codesign_mpm import runtime
+from codesign_mpm.runtime import FOLD_THREADS
 from codesign_mpm.engine.constitutive import _Constitutive
 from codesign_mpm.engine.contact import _Contact
 from codesign_mpm.engine.eigen import JACOBI_TOL_ULPS, _Eigen
@@ -52,6 +53,7 @@ class Layout:
     boundary_cells: int
     requires_grad: bool
     scatter_copies: int = 1  # private grids p2g scatters into without atomics (runtime.scatter_copies)
+    folded: bool = False  # reductions fold per thread first (runtime.fold_reductions)
     members: int = 1  # scenes simulated side by side (codesign_mpm.engine.batch); 1: a plain simulator
     has_flip: bool = False  # FLIP's share in the elastic bodies' velocity update (scene.flip > 0)
     surface_contact: bool = False  # the terrain's contact at its exact surface (terrain.contact: surface, spring)
@@ -90,6 +92,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         self.batched = layout.members > 1
         self.copies = layout.scatter_copies
         self.private_scatter = layout.scatter_copies > 1
+        self.folded = layout.folded  # reductions into one value fold per thread first (runtime.FOLD_THREADS)
         self.has_flip = layout.has_flip
         self.surface_contact = layout.surface_contact
         self.contact_memory = layout.contact_memory
@@ -352,22 +355,45 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
             for b in range(self.members):
                 self.member_speed[b] = 0.0
                 self.member_wave[b] = 0.0
-        for p in range(n):
-            x, v, F = self.x[s, p], self.v[s, p], self.F[s, p]
-            size = self.dx[None] * ti.Vector([self.grid_shape[0] - 1, self.grid_shape[1] - 1,
-                                              self.grid_shape[2] - 1])
-            magnitude = x.norm_sqr() + v.norm_sqr() + F.norm_sqr()
-            inside = (x >= 0).all() and (x <= size).all()
-            if not (magnitude < 1e30) or not inside:
-                self.n_bad[None] += 1
-                ti.atomic_min(self.first_bad[None], p)
-            wave = v.norm() + self._wave_speed(p, F)
-            if ti.static(self.batched):  # each member is checked against its own time step
-                ti.atomic_max(self.member_speed[self.member[p]], v.norm())
-                ti.atomic_max(self.member_wave[self.member[p]], wave)
-            else:
-                ti.atomic_max(self.max_speed[None], v.norm())
+        if ti.static(self.folded and not self.batched):  # a GPU: FOLD_THREADS threads, each folds its particles first
+            for t in range(FOLD_THREADS):
+                bad, first, speed, wave = 0, n, 0.0, 0.0
+                p = t
+                while p < n:
+                    p_bad, p_speed, p_wave = self._checked(s, p)
+                    if p_bad:
+                        bad += 1
+                        first = ti.min(first, p)
+                    speed, wave = ti.max(speed, p_speed), ti.max(wave, p_wave)
+                    p += FOLD_THREADS
+                self.n_bad[None] += bad
+                ti.atomic_min(self.first_bad[None], first)
+                ti.atomic_max(self.max_speed[None], speed)
                 ti.atomic_max(self.max_wave[None], wave)
+        else:
+            for p in range(n):
+                bad, speed, wave = self._checked(s, p)
+                if bad:
+                    self.n_bad[None] += 1
+                    ti.atomic_min(self.first_bad[None], p)
+                if ti.static(self.batched):  # each member is checked against its own time step
+                    ti.atomic_max(self.member_speed[self.member[p]], speed)
+                    ti.atomic_max(self.member_wave[self.member[p]], wave)
+                else:
+                    ti.atomic_max(self.max_speed[None], speed)
+                    ti.atomic_max(self.max_wave[None], wave)
+
+    @ti.func
+    def _checked(self, s, p):
+        """Particle p of slot s: whether it is non-finite or outside the grid, its speed, and its
+        fastest wave plus its speed."""
+        x, v, F = self.x[s, p], self.v[s, p], self.F[s, p]
+        size = self.dx[None] * ti.Vector([self.grid_shape[0] - 1, self.grid_shape[1] - 1,
+                                          self.grid_shape[2] - 1])
+        magnitude = x.norm_sqr() + v.norm_sqr() + F.norm_sqr()
+        inside = (x >= 0).all() and (x <= size).all()
+        speed = v.norm()
+        return not (magnitude < 1e30) or not inside, speed, speed + self._wave_speed(p, F)
 
 
 _free: "OrderedDict[int, tuple[tuple[int, Layout], _Storage]]" = OrderedDict()  # released storages, oldest first

@@ -36,6 +36,7 @@ fields that class allocates.
 import taichi as ti
 
 from codesign_mpm.materials import MATERIALS
+from codesign_mpm.runtime import FOLD_THREADS
 
 # a particle compressed below this volume ratio takes APIC's velocity alone, whatever the FLIP share:
 # crushed bodies (a drop faster than the body's wave speed, J -> 0.01) otherwise gain energy
@@ -90,11 +91,24 @@ class _Transfers:
         for d in ti.static(range(3)):
             self.lo[d][None] = self.grid_shape[d]
             self.hi[d][None] = 0
-        for p in range(n):
-            base = self._base(self.x[s, p])
-            for d in ti.static(range(3)):
-                ti.atomic_min(self.lo[d][None], base[d])
-                ti.atomic_max(self.hi[d][None], base[d] + 3)
+        if ti.static(self.folded):  # a GPU: FOLD_THREADS threads, each folds its particles first
+            for t in range(FOLD_THREADS):
+                lo = ti.Vector([self.grid_shape[0], self.grid_shape[1], self.grid_shape[2]])
+                hi = ti.Vector([0, 0, 0])
+                p = t
+                while p < n:
+                    base = self._base(self.x[s, p])
+                    lo, hi = ti.min(lo, base), ti.max(hi, base + 3)
+                    p += FOLD_THREADS
+                for d in ti.static(range(3)):
+                    ti.atomic_min(self.lo[d][None], lo[d])
+                    ti.atomic_max(self.hi[d][None], hi[d])
+        else:
+            for p in range(n):
+                base = self._base(self.x[s, p])
+                for d in ti.static(range(3)):
+                    ti.atomic_min(self.lo[d][None], base[d])
+                    ti.atomic_max(self.hi[d][None], base[d] + 3)
 
     @ti.func
     def _stencil(self, p, s):
