@@ -41,3 +41,11 @@ def test_the_profile_counts_a_substeps_kernel_launches_and_splits_its_time():
     assert 1 <= forward["launches_per_substep"] < 2 and 0 <= forward["other_share"] < 1
     assert sum(k["share"] for k in forward["kernels"].values()) == pytest.approx(1.0, abs=0.01)
     assert record["forward_backward"]["launches_per_substep"] > 3 * forward["launches_per_substep"]
+
+
+def test_bench_engine_names_the_allowed_measures_and_archs(cli):
+    code, _, err = cli("bench", "engine", "--measure", "speed")
+    assert code != 0 and ("--measure 'speed': choose from forward, float64, dense, backward, batch, scatter, "
+                          "adaptive, flip, contact") in " ".join(err.replace("│", " ").split())
+    code, _, err = cli("bench", "environments", "--arch", "opengl")
+    assert code != 0 and "--arch 'opengl': choose from cpu, cuda" in " ".join(err.replace("│", " ").split())
