@@ -41,8 +41,11 @@ if [[ -n "$BASELINE" ]]; then  # an older checkout's forward rates, for a before
     for scale in $SCALES; do
         [[ $scale == large ]] && continue  # not a scale of the older code
         (cd "$BASELINE" && export PYTHONPATH="$PWD:$PWD/plugins:$PYTHONPATH" && within_budget 40 python3 -c "
-import json, sys
-from codesign_mpm.bench import Case, measure_forward
+import json
+try:
+    from codesign_mpm.reports.bench import Case, measure_forward
+except ImportError:  # a checkout from before codesign_mpm's rooms (2026-11-28)
+    from codesign_mpm.bench import Case, measure_forward
 print(json.dumps(dict(variant='baseline', scale='$scale',
                       **measure_forward(Case('$scale', 'float32', arch='$ARCH')))))") >> "$OUT/baseline.jsonl"
     done
