@@ -2,12 +2,14 @@
 # The GPU figures of docs/performance.md ("On a GPU", issue 48), in priority order within a time
 # budget: forward and backward per scale, where a substep's time goes, a batch of 64 quick-start-size
 # designs, the paper-scale environments (the base of docs/studies.md's estimate of the paper's scale),
+# one cell of Table 1 at the paper's scale on a fraction of its budget (benchmarks/paper_cell.py),
 # and last, if BASELINE names a checkout of an older commit, its forward rates on the same machine.
 #
 #   OUT=gpu-records BUDGET_S=540 bash benchmarks/gpu.sh          # from the repository root, on a CUDA machine
 #
-# Needs taichi (and numpy, scipy, pluggy, typer, rich); the project need not be installed: the
-# engine's plugin is loaded by name. Each measurement appends JSON lines to $OUT as it ends, so a
+# Needs taichi (and numpy, scipy, pluggy, typer, rich; the Table 1 cell also torch, omegaconf,
+# trimesh, stable-baselines3 and gymnasium, not wandb); the project need not be installed: its
+# plugins are loaded by name. Each measurement appends JSON lines to $OUT as it ends, so a
 # run cut short keeps what it finished.
 set -u
 OUT=${OUT:-gpu-records}
@@ -16,6 +18,7 @@ BASELINE=${BASELINE:-}
 SCALES=${SCALES:-tiny small paper large}      # of the forward and backward measurements
 PROFILED=${PROFILED:-tiny paper}             # of the profile
 ENV_SCALE=${ENV_SCALE:-paper}                # of the environments
+CELL_SCALE=${CELL_SCALE:-paper}              # of the Table 1 cell
 DEADLINE=$((SECONDS + ${BUDGET_S:-540}))
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 CODESIGN_DISABLE_PLUGIN_AUTOLOAD=1 CODESIGN_PLUGINS=codesign_mpm.plugin
@@ -37,6 +40,8 @@ within_budget 100 $bench engine --arch "$ARCH" --profile $(scales "$PROFILED") -
 within_budget 60 $bench engine --arch "$ARCH" --scale tiny --measure batch --members 64 --no-progress >> "$OUT/engine.jsonl"
 within_budget 120 $bench environments --arch "$ARCH" --scale "$ENV_SCALE" --env ground --env desert --env ocean \
     --no-progress >> "$OUT/environments.jsonl"
+(export CODESIGN_PLUGINS=codesign_basics.plugin,codesign_mpm.plugin,codesign_designs.plugin,codesign_optimizers.plugin
+ within_budget 300 python3 benchmarks/paper_cell.py --scale "$CELL_SCALE" >> "$OUT/paper_cell.jsonl")
 if [[ -n "$BASELINE" ]]; then  # an older checkout's forward rates, for a before/after on this machine
     for scale in $SCALES; do
         [[ $scale == large ]] && continue  # not a scale of the older code
