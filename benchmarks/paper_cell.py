@@ -49,12 +49,13 @@ def main() -> None:
         for arm in arms:
             recipe = arm_recipe(study, arm, Path(scratch))
             recipe.pop("sweep")
+            recipe = resolve_recipe(recipe).data  # the optimizer's defaults filled in
             optimizer = dict(recipe["optimizer"])
             if optimizer["name"] == "diff_physics":
                 budget, unit = optimizer["iterations"], "iteration"
                 optimizer["iterations"] = args.iterations
             else:
-                steps = optimizer.get("timesteps_per_iteration") or optimizer.get("n_steps") or 2048
+                steps = optimizer["timesteps_per_iteration"]
                 budget, unit = optimizer["total_timesteps"], "environment step"
                 optimizer["total_timesteps"] = args.rollouts * steps
             wall, *ends = timed_run({**recipe, "optimizer": optimizer, "seed": arm_seeds(study, arm)[0]},

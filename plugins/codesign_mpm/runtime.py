@@ -5,6 +5,7 @@ import os
 import weakref
 
 import taichi as ti
+from taichi.lang import impl
 
 CACHE_LIMIT_BYTES = 1024**3  # Taichi takes a C int: under 2 GiB
 """Taichi's default offline cache (100 MiB, least recently used out) holds fewer kernels than the
@@ -131,8 +132,6 @@ def scatter_copies() -> int:
     """Private grids for p2g: one per CPU thread (up to MAX_SCATTER_COPIES); 1 on a GPU, whose
     atomic adds are native (1 means one shared grid with atomic adds). The environment variable
     CODESIGN_SCATTER_COPIES overrides it (benchmarks compare the two scatters with it)."""
-    from taichi.lang import impl
-
     forced = os.environ.get("CODESIGN_SCATTER_COPIES")
     if forced:
         if not forced.isdigit() or int(forced) < 1:
@@ -152,8 +151,6 @@ substep on an H200 for the box's six, whatever the particle count)."""
 
 def on_gpu() -> bool:
     """Whether Taichi runs on a GPU (not a CPU backend)."""
-    from taichi.lang import impl
-
     return impl.current_cfg().arch not in (ti.x64, ti.arm64)
 
 
