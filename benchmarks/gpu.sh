@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU figures of docs/performance.md ("On a GPU", issue 48), in priority order within a time
 # budget: forward and backward per scale, where a substep's time goes, a batch of 64 quick-start-size
-# designs, the paper-scale environments (the base of docs/studies.md's estimate of the paper's scale),
+# designs and where its substep goes, the paper-scale environments (the base of docs/studies.md's
+# estimate of the paper's scale),
 # one cell of Table 1 at the paper's scale on a fraction of its budget (benchmarks/paper_cell.py),
 # and last, if BASELINE names a checkout of an older commit, its forward rates on the same machine.
 #
@@ -38,6 +39,8 @@ within_budget 200 $bench engine --arch "$ARCH" $(scales "$SCALES") --measure for
     --no-progress >> "$OUT/engine.jsonl"
 within_budget 100 $bench engine --arch "$ARCH" --profile $(scales "$PROFILED") --no-progress >> "$OUT/profile.jsonl"
 within_budget 60 $bench engine --arch "$ARCH" --scale tiny --measure batch --members 64 --no-progress >> "$OUT/engine.jsonl"
+# where the batch's substep goes: the 64 members' one launch against one member's
+within_budget 60 $bench engine --arch "$ARCH" --profile --scale tiny --members 64 --no-progress >> "$OUT/profile.jsonl"
 within_budget 120 $bench environments --arch "$ARCH" --scale "$ENV_SCALE" --env ground --env desert --env ocean \
     --no-progress >> "$OUT/environments.jsonl"
 (export CODESIGN_PLUGINS=codesign_basics.plugin,codesign_mpm.plugin,codesign_designs.plugin,codesign_optimizers.plugin

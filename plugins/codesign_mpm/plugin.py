@@ -262,7 +262,9 @@ def codesign_cli(app: typer.Typer) -> None:
         measure: list[str] = typer.Option([], "--measure", help="forward, float64, dense, backward, batch, "
                                           "scatter, adaptive, flip, contact; repeatable; default: all."),
         frames: int = typer.Option(200, "--frames", min=1, help="Frames of the differentiable episode."),
-        members: int = typer.Option(8, "--members", min=2, help="Episodes in the batch measurement."),
+        members: Optional[int] = typer.Option(None, "--members", min=2, help="Episodes in the batch "
+                                              "measurement [default: 8]; with --profile, a batched simulator "
+                                              "of that many is profiled too."),
         profile: bool = typer.Option(False, "--profile", help="Instead: where a substep's time goes (kernel "
                                      "launches, Python-side field accesses, each kernel's share, the rest), "
                                      "forward and forward + backward, under Taichi's kernel profiler."),
@@ -283,7 +285,7 @@ def codesign_cli(app: typer.Typer) -> None:
                 raise typer.BadParameter(f"--measure {m!r}: choose from {', '.join(ENGINE_MEASURES)}")
         _check_arch(arch)
         if profile:
-            run_profile_bench(scale, arch, _echo_json, progress=not no_progress)
+            run_profile_bench(scale, arch, _echo_json, progress=not no_progress, members=members or 0)
         else:
             run_engine_bench(scale, frames, _echo_json, progress=not no_progress, arch=arch,
-                             measures=tuple(measure or ENGINE_MEASURES), members=members)
+                             measures=tuple(measure or ENGINE_MEASURES), members=members or 8)

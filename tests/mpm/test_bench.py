@@ -28,19 +28,21 @@ def test_bench_compile_names_the_allowed_covers(cli):
 
 
 def test_the_profile_counts_a_substeps_kernel_launches_and_splits_its_time():
-    """`codesign bench engine --profile`: a forward substep of the tiny scene is one launch (the
-    fused substep; the state check once a frame), and the kernels' shares add up to one."""
+    """`codesign bench engine --profile --members 3`: a forward substep of the tiny scene is one
+    launch (the fused substep; the state check once a frame), alone and for a batch of three, and
+    the kernels' shares add up to one."""
     from codesign_mpm.reports.bench import run_profile_bench
 
     records = []
-    run_profile_bench(["tiny"], "cpu", records.append, progress=False)
+    run_profile_bench(["tiny"], "cpu", records.append, progress=False, members=3)
     (record,) = records
     assert "error" not in record, record.get("error")
-    forward = record["forward"]
-    assert forward["kernels"]["_forward_substep"]["launches_per_substep"] == 1.0
-    assert 1 <= forward["launches_per_substep"] < 2 and 0 <= forward["other_share"] < 1
-    assert sum(k["share"] for k in forward["kernels"].values()) == pytest.approx(1.0, abs=0.01)
-    assert record["forward_backward"]["launches_per_substep"] > 3 * forward["launches_per_substep"]
+    for forward in (record["forward"], record["batch"]):
+        assert forward["kernels"]["_forward_substep"]["launches_per_substep"] == 1.0
+        assert 1 <= forward["launches_per_substep"] < 3 and 0 <= forward["other_share"] < 1
+        assert sum(k["share"] for k in forward["kernels"].values()) == pytest.approx(1.0, abs=0.01)
+    assert record["batch"]["members"] == 3
+    assert record["forward_backward"]["launches_per_substep"] > 3 * record["forward"]["launches_per_substep"]
 
 
 def test_bench_engine_names_the_allowed_measures_and_archs(cli):

@@ -147,25 +147,39 @@ def _kernel_profile(substeps: int, wall_s: float) -> dict:
                          for name, (n, ms) in top})
 
 
-def measure_profile(case: Case, frames: int = 5, backward_frames: int = 20) -> dict:
-    """Where a substep's time goes (`codesign bench engine --profile`), forward and forward +
-    backward, under Taichi's kernel profiler (`CODESIGN_KERNEL_PROFILER=1`, set by the caller: it
-    must be on when Taichi starts). The profiler synchronises around every kernel, so its wall
-    times are upper bounds; `forward` measures the unprofiled throughput."""
+def _profile_forward(sim, action: np.ndarray, frames: int) -> dict:
+    """`_kernel_profile` of `frames` control steps holding `action`, after one that compiles."""
+    import taichi as ti
+
+    sim.step(np.zeros_like(action))  # compiles (or loads from the offline cache)
+    ti.profiler.clear_kernel_profiler_info()
+    t0 = time.perf_counter()
+    sim.step(action, frames=frames)
+    profile = _kernel_profile(sum(sim.frame_substeps[-frames:]), time.perf_counter() - t0)
+    sim.close()
+    return profile
+
+
+def measure_profile(case: Case, frames: int = 5, backward_frames: int = 20, members: int = 0) -> dict:
+    """Where a substep's time goes (`codesign bench engine --profile`), forward, forward + backward
+    and, with `members`, forward in a BatchSimulator of that many copies of the scene's robot, under
+    Taichi's kernel profiler (`CODESIGN_KERNEL_PROFILER=1`, set by the caller: it must be on when
+    Taichi starts). The profiler synchronises around every kernel, so its wall times are upper
+    bounds; `forward` measures the unprofiled throughput."""
     import taichi as ti
 
     from codesign_mpm import build_particles
     from codesign_mpm.engine import Simulator
+    from codesign_mpm.engine.batch import BatchSimulator
 
     scene = robot_scene(case)
     particles = build_particles(scene)
-    sim = Simulator(scene, particles)
-    sim.step(np.zeros(sim.n_actuators))  # compiles (or loads from the offline cache)
-    ti.profiler.clear_kernel_profiler_info()
-    t0 = time.perf_counter()
-    sim.step(np.full(sim.n_actuators, 0.1), frames=frames)
-    forward = _kernel_profile(sum(sim.frame_substeps[-frames:]), time.perf_counter() - t0)
-    sim.close()
+    forward = _profile_forward(Simulator(scene, particles), np.full(particles.n_actuators, 0.1), frames)
+    batch = None
+    if members:
+        batch = _profile_forward(BatchSimulator(scene, [particles] * members),
+                                 np.full((members, particles.n_actuators), 0.1), frames)
+        batch.update(members=members)
     sim = Simulator(scene, particles, requires_grad=True, max_frames=backward_frames)
     actions = 0.1 * np.sin(np.arange(backward_frames)[:, None] * 0.3 + np.arange(sim.n_actuators))
     seed = np.tile([1.0, 0.0, 0.0], (backward_frames + 1, 1)) / backward_frames
@@ -176,7 +190,8 @@ def measure_profile(case: Case, frames: int = 5, backward_frames: int = 20) -> d
     sim.rollout(actions)
     sim.backward(com_v=seed)
     both = _kernel_profile(sum(sim.frame_substeps), time.perf_counter() - t0)
-    return dict(measure="profile", arch=case.arch, particles=sim.n, forward=forward, forward_backward=both)
+    return dict(measure="profile", arch=case.arch, particles=sim.n, forward=forward, forward_backward=both,
+                **({"batch": batch} if batch else {}))
 
 
 def measure_batch(case: Case, members: int = 8, frames: int = 5, repeats: int = 5) -> dict:
@@ -377,15 +392,17 @@ def _run_isolated(kind: str, case: Case, environment: dict | None = None, **kwar
                                               json.dumps(kwargs), environment=environment)}
 
 
-def run_profile_bench(scales: list[str], arch: str, emit, progress: bool = True) -> None:
-    """Emit, per scale, where a substep's time goes (`measure_profile`), on `arch`."""
+def run_profile_bench(scales: list[str], arch: str, emit, progress: bool = True, members: int = 0) -> None:
+    """Emit, per scale, where a substep's time goes (`measure_profile`, with a batch of `members`
+    if given), on `arch`."""
     from codesign.progress import progress_bar
 
     machine = _machine()
     with progress_bar(total=len(scales), desc="bench engine --profile", unit="scale", show=progress) as bar:
         for scale in scales:
             emit(dict(scale=scale, dtype="float32", **_run_isolated(
-                "profile", Case(scale, "float32", arch=arch), environment={"CODESIGN_KERNEL_PROFILER": "1"}),
+                "profile", Case(scale, "float32", arch=arch), environment={"CODESIGN_KERNEL_PROFILER": "1"},
+                members=members),
                 **machine))
             bar.update(1)
 
