@@ -70,6 +70,7 @@ class Study:
     still: bool = True  # also play each arm's starting design without any action (the return of doing nothing)
     prepared_arms: tuple[str, ...] | None = None  # labels of the arms that start from `prepare` (None: all)
     reported: str = "best"  # the value compared with the paper's: "best" of the seeds' runs, or their "mean"
+    best_along: tuple[int, str] | None = None  # a grid's (dimension, its name): the paper reads which value does best
 
 
 @dataclass(frozen=True)
@@ -245,7 +246,21 @@ def load_study(ref: str, scale: str = SCALE_DEFAULT) -> Study:
     reported = _check_reported(spec.get("reported", "best"), f"{where}: study.reported")
     return Study(path.stem, spec.get("title", path.stem), spec.get("paper", ""), spec.get("differs", ""),
                  seeds, tuple(arms), recipe, scale, prepare, analysis, parameters, bool(spec.get("still", True)),
-                 prepared_arms, reported)
+                 prepared_arms, reported, _best_along(spec, where))
+
+
+def _best_along(spec: dict, where: str) -> tuple[int, str] | None:
+    """`study.best_along: {dimension: i, name: ...}`: a grid dimension (0-based) whose values the
+    paper compares with the others held fixed (Table 1: which animal suits which environment)."""
+    value = spec.get("best_along")
+    if value is None:
+        return None
+    dimensions = len(spec.get("grid") or [])
+    if (not isinstance(value, dict) or set(value) != {"dimension", "name"} or not isinstance(value["name"], str)
+            or not isinstance(value["dimension"], int) or not 0 <= value["dimension"] < dimensions - 1):
+        raise RecipeError(f"invalid {where}: study.best_along: {value!r}; give {{dimension: i, name: what its values "
+                          f"are}} with i a grid dimension before the methods' (0 to {dimensions - 2})")
+    return value["dimension"], value["name"]
 
 
 REPORTED = ("best", "mean")
@@ -546,6 +561,38 @@ def verdict(rows: list[Row]) -> str:
     return text + noise
 
 
+def best_along(rows: list[Row], dimension: int, name: str) -> str:
+    """The paper's reading of a grid along one dimension: in each combination of the other labels
+    (a grid arm's label is "a / b / ..."), which of this dimension's values scores best, ours against
+    the paper's; a winner of ours is separated when it beats the runner-up by more than the sum of
+    their standard deviations over seeds."""
+    groups: dict[str, list[tuple[str, Row]]] = {}
+    for r in rows:
+        parts = r.arm.label.split(" / ")
+        if r.arm.paper is not None and len(parts) > dimension:
+            rest = " / ".join(parts[:dimension] + parts[dimension + 1:])
+            groups.setdefault(rest, []).append((parts[dimension], r))
+    agree, separated, differ = 0, 0, []
+    compared = {rest: members for rest, members in groups.items() if len(members) > 1}
+    for rest, members in compared.items():
+        ours = sorted(members, key=lambda m: m[1].value, reverse=True)
+        paper = max(members, key=lambda m: m[1].arm.paper)
+        spread = sum(r.std if math.isfinite(r.std) else 0.0 for _, r in ours[:2])
+        apart = ours[0][1].value - ours[1][1].value > spread
+        separated += apart
+        if ours[0][0] == paper[0]:
+            agree += 1
+        else:
+            differ.append(f"{rest}: ours {ours[0][0]} ({_fmt(ours[0][1].value)}"
+                          f"{'' if apart else ', not separated'}), the paper's {paper[0]} ({paper[1].arm.paper:.3f})")
+    if not compared:
+        return f"No two {name}s with numbers here share the other labels: no {name} to compare."
+    text = (f"Which {name} does best, the rest held fixed (the paper's reading of this table): ours is the "
+            f"paper's in {agree} of {len(compared)} comparisons; {separated} of our {len(compared)} are "
+            f"separated by more than the seeds' spread.")
+    return text + (f" Where they differ: {'; '.join(differ)}." if differ else "")
+
+
 def _fmt(v: float) -> str:
     return "-" if v is None or not math.isfinite(v) else f"{v:.4f}"
 
@@ -624,7 +671,8 @@ def _data_line(study: Study) -> str:
 
 
 def section(study: Study, rows: list[Row]) -> str:
-    parts = [table_markdown(rows), verdict(rows), f"![{study.name}]({study.name}.png)"]
+    reading = verdict(rows) + (f" {best_along(rows, *study.best_along)}" if study.best_along else "")
+    parts = [table_markdown(rows), reading, f"![{study.name}]({study.name}.png)"]
     runs = sum(len(r.per_step) for r in rows)
     planned = sum(len(arm_seeds(study, arm)) for arm in study.arms)
     if runs < planned:

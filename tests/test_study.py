@@ -10,7 +10,7 @@ import yaml
 
 from codesign import RecipeError
 from codesign.recipe import RECIPES_DIR, resolve_recipe
-from codesign.study import (DOCS_DATA, DOCS_PAGE, Arm, Row, arm_recipe, data_path, docs_links, load_study, publish,
+from codesign.study import (DOCS_DATA, DOCS_PAGE, Arm, Row, arm_recipe, best_along, data_path, docs_links, load_study, publish,
                             published_section, read_records, rows_from, section, verdict)
 
 SHIPPED = sorted((RECIPES_DIR / "studies").glob("*.yaml"))
@@ -308,6 +308,34 @@ def test_a_study_under_way_reports_its_finished_arms(tmp_path, toy_study, cli):
     assert code == 0, err
     section = (tmp_path / "s" / "section.md").read_text()
     assert "**Under way**: 2 of 4 runs finished (1 of 2 arms" in section and "Tight bound" not in section
+
+
+def test_a_grid_is_also_read_along_one_dimension_as_the_paper_reads_it():
+    """Table 1's finding is which animal suits which environment: per task, environment and method,
+    the best animal of ours against the paper's, and whether the seeds separate ours."""
+    def row(label, paper, values):
+        return Row(Arm(label, paper=paper, cell=label.rsplit(" / ", 1)[0]), values, (0.0,) * 2, (1.0,) * 2)
+
+    rows = [row("Walk / Seal / Ground / diff", 0.12, (0.5, 0.52)), row("Walk / Worm / Ground / diff", 0.08, (0.2, 0.21)),
+            row("Walk / Seal / Sea / diff", 0.03, (0.30, 0.40)), row("Walk / Worm / Sea / diff", 0.13, (0.35, 0.36)),
+            row("Walk / Seal / Sand / diff", 0.06, (0.1, 0.1))]  # no caterpillar in the sand: nothing to compare
+    text = best_along(rows, 1, "animal")
+    assert "ours is the paper's in 1 of 2 comparisons; 1 of our 2 are separated" in text
+    assert "Where they differ: Walk / Sea / diff: ours Seal (0.4000, not separated), the paper's Worm (0.130)." in text
+    assert "No two animals" in best_along(rows[4:], 1, "animal")
+
+
+def test_best_along_names_a_grid_dimension_before_the_methods(tmp_path):
+    study = tmp_path / "grid.yaml"
+    spec = {"study": {"title": "t", "grid": [[{"label": "a"}], [{"label": "x"}], [{"label": "m"}]],
+                      "best_along": {"dimension": 2, "name": "method"}},
+            "recipe": {"environment": {"name": "toy"}}}
+    study.write_text(yaml.safe_dump(spec))
+    with pytest.raises(RecipeError, match=r"study.best_along: .*a grid dimension before the methods' \(0 to 1\)"):
+        load_study(str(study))
+    spec["study"]["best_along"]["dimension"] = 1
+    study.write_text(yaml.safe_dump(spec))
+    assert load_study(str(study)).best_along == (1, "method")
 
 
 def test_a_large_table_verdict_counts_the_pairs_ordered_as_in_the_paper():
