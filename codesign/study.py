@@ -84,6 +84,7 @@ class Row:
     still: float | None = None  # the starting design with no action (first seed): return / horizon
     first: tuple[float, ...] = ()  # each seed's iteration 0 (its starting design and controller): return / horizon
     reported: str = "best"
+    best_at_end: tuple[bool, ...] = ()  # each seed: whether its best iteration was its last (still improving)
 
     @property
     def mean(self) -> float:
@@ -514,7 +515,8 @@ def rows_from(study: Study, records: list[dict]) -> list[Row]:
         rows.append(Row(arm, tuple(r["best"] / r["horizon"] for r in runs), tuple(r["torn"] for r in runs),
                         tuple(r["wall_time"] for r in runs), stills[0] if stills else None,
                         tuple(r["returns"][0] / r["horizon"] for r in runs if r["returns"]),
-                        arm.reported or study.reported))
+                        arm.reported or study.reported,
+                        tuple(r["returns"][-1] >= max(r["returns"]) for r in runs if len(r["returns"]) > 1)))
     if not rows:
         raise CodesignError(f"study {study.name}: no arm has a finished run; run `codesign study {study.name}` "
                             f"to (re)start it")
@@ -532,6 +534,10 @@ def verdict(rows: list[Row]) -> str:
     still = [r for cell in cells.values() if not any(c.moves for c in cell) for r in cell]
     noise = ("" if not still else f" Not ranked, no better than no action (by more than their spread over seeds): "
              f"{', '.join(r.arm.label for r in still)}.")
+    weak = [r for r in rows if r not in still and not r.moves]
+    if weak:
+        noise += (" No better than no action by more than their spread over seeds, ranked with the rest of their "
+                  f"cell: {', '.join(r.arm.label + _still_improving(r) for r in weak)}.")
     compared = [r for r in rows if r.arm.paper is not None and r not in still]
     if len(compared) < 2:
         return "The paper gives fewer than two of these numbers: no ordering to compare." + noise
@@ -559,6 +565,13 @@ def verdict(rows: list[Row]) -> str:
         text += (" Closer than the sum of their standard deviations over seeds (not separated at this scale): "
                  + ", ".join(unclear) + ".")
     return text + noise
+
+
+def _still_improving(row: Row) -> str:
+    """" (best at its last iteration in k of n seeds)": whether its budget ended it still improving."""
+    if not row.best_at_end:
+        return ""
+    return f" (best at its last iteration in {sum(row.best_at_end)} of {len(row.best_at_end)} seeds)"
 
 
 def best_along(rows: list[Row], dimension: int, name: str) -> str:

@@ -2,6 +2,7 @@
 return), the verdict on the paper's ordering, resume, docs; every shipped study file resolves."""
 import csv
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -174,6 +175,10 @@ def test_a_cell_whose_every_arm_does_no_better_than_no_action_is_said_and_not_ra
     assert "Not ranked, no better than no action (by more than their spread over seeds): Turn / diff, Turn / ppo" in text
     rows[1] = row("Turn", "ppo", 0.1, (0.5, 0.51), 0.0115)  # one arm of the cell moves: the cell is ranked
     assert "Not ranked" not in verdict(rows)
+    # an arm no better than no action in a ranked cell is named, with whether its budget ended it still improving
+    rows[0] = replace(rows[0], best_at_end=(True, False))
+    assert ("ranked with the rest of their cell: Turn / diff (best at its last iteration in 1 of 2 seeds)."
+            in verdict(rows))
 
 
 def test_the_committed_records_alone_rebuild_a_published_section(tmp_path, toy_study, cli, monkeypatch):
