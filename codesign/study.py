@@ -535,7 +535,7 @@ def verdict(rows: list[Row]) -> str:
     noise = ("" if not still else f" Not ranked, no better than no action (by more than their spread over seeds): "
              f"{', '.join(r.arm.label for r in still)}.")
     weak = [r for r in rows if r not in still and not r.moves]
-    if weak:
+    if weak:  # named in either form of the verdict: which of the table's numbers a reader should not rank
         noise += (" No better than no action by more than their spread over seeds, ranked with the rest of their "
                   f"cell: {', '.join(r.arm.label + _still_improving(r) for r in weak)}.")
     compared = [r for r in rows if r.arm.paper is not None and r not in still]
@@ -554,7 +554,7 @@ def verdict(rows: list[Row]) -> str:
         return (f"Over the {len(compared)} arms with a number in the paper, ours order {pairs - swapped} of "
                 f"{pairs} pairs as the paper's do ({agreement}); {len(unclear)} of the {len(compared) - 1} "
                 f"neighbours in the paper's ordering differ by less than their standard deviations over seeds."
-                + (f" {len(still)} arms in cells that do no better than no action are not ranked." if still else ""))
+                + noise)
     names = " > ".join(r.arm.label for r in paper_order)
     if paper_order == ours_order:
         text = f"The paper's ordering ({names}) **holds** here ({agreement})."
@@ -601,8 +601,8 @@ def best_along(rows: list[Row], dimension: int, name: str) -> str:
     if not compared:
         return f"No two {name}s with numbers here share the other labels: no {name} to compare."
     text = (f"Which {name} does best, the rest held fixed (the paper's reading of this table): ours is the "
-            f"paper's in {agree} of {len(compared)} comparisons; {separated} of our {len(compared)} are "
-            f"separated by more than the seeds' spread.")
+            f"paper's in {agree} of {len(compared)} comparisons, and the seeds separate our best from the "
+            f"runner-up (by more than the sum of their spreads) in {separated} of the {len(compared)}.")
     return text + (f" Where they differ: {'; '.join(differ)}." if differ else "")
 
 

@@ -325,7 +325,8 @@ def test_a_grid_is_also_read_along_one_dimension_as_the_paper_reads_it():
             row("Walk / Seal / Sea / diff", 0.03, (0.30, 0.40)), row("Walk / Worm / Sea / diff", 0.13, (0.35, 0.36)),
             row("Walk / Seal / Sand / diff", 0.06, (0.1, 0.1))]  # no caterpillar in the sand: nothing to compare
     text = best_along(rows, 1, "animal")
-    assert "ours is the paper's in 1 of 2 comparisons; 1 of our 2 are separated" in text
+    assert "ours is the paper's in 1 of 2 comparisons, and the seeds separate our best" in text
+    assert "in 1 of the 2." in text
     assert "Where they differ: Walk / Sea / diff: ours Seal (0.4000, not separated), the paper's Worm (0.130)." in text
     assert "No two animals" in best_along(rows[4:], 1, "animal")
 
@@ -348,6 +349,9 @@ def test_a_large_table_verdict_counts_the_pairs_ordered_as_in_the_paper():
             enumerate([(0.1, 1.0), (0.2, 2.0), (0.3, 3.0), (0.4, 4.0), (0.5, 5.0), (0.6, 7.0), (0.7, 6.0)])]
     text = verdict(rows)
     assert "Over the 7 arms with a number in the paper, ours order 20 of 21 pairs as the paper's do" in text
+    rows[0] = replace(rows[0], still=1.01)  # arm0 (best 1.01) does no better than doing nothing: named
+    assert verdict(rows) == text + (" No better than no action by more than their spread over seeds, ranked with "
+                                    "the rest of their cell: arm0.")
 
 
 @pytest.mark.parametrize("path", COMMITTED, ids=[p.stem for p in COMMITTED])
