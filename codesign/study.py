@@ -568,7 +568,8 @@ def verdict(rows: list[Row]) -> str:
 
 
 def _still_improving(row: Row) -> str:
-    """" (best at its last iteration in k of n seeds)": whether its budget ended it still improving."""
+    """The verdict's note on an arm: in how many seeds its best iteration was its last (the budget
+    ended it still improving)."""
     if not row.best_at_end:
         return ""
     return f" (best at its last iteration in {sum(row.best_at_end)} of {len(row.best_at_end)} seeds)"
