@@ -105,11 +105,16 @@ class Row:
         return statistics.stdev(self.per_step) if len(self.per_step) > 1 else float("nan")
 
     @property
+    def spread(self) -> float:
+        """The standard deviation over seeds, 0 for one seed: what a difference must exceed to count."""
+        return self.std if math.isfinite(self.std) else 0.0
+
+    @property
     def moves(self) -> bool:
         """Whether it beats doing nothing by more than its spread over seeds (unknown no-action: yes)."""
         if self.still is None:
             return True
-        return self.value - self.still > (self.std if math.isfinite(self.std) else 0.0)
+        return self.value - self.still > self.spread
 
     @property
     def gain(self) -> float:
@@ -117,6 +122,11 @@ class Row:
         if len(self.first) != len(self.per_step):
             return float("nan")
         return statistics.fmean(b - f for b, f in zip(self.per_step, self.first))
+
+
+def separated(a: Row, b: Row) -> bool:
+    """Whether two arms' reported values differ by more than the sum of their spreads over seeds."""
+    return abs(a.value - b.value) > a.spread + b.spread
 
 
 def _dotted(items: Mapping[str, Any]) -> dict:
@@ -545,8 +555,7 @@ def verdict(rows: list[Row]) -> str:
     ours_order = sorted(compared, key=lambda r: r.value, reverse=True)
     tau = kendalltau([r.arm.paper for r in compared], [r.value for r in compared]).statistic
     agreement = f"Kendall's tau {tau:.2f}" if math.isfinite(tau) else "Kendall's tau undefined: tied values"
-    unclear = [f"{a.arm.label} / {b.arm.label}" for a, b in zip(paper_order, paper_order[1:])
-               if not abs(a.value - b.value) > (a.std if math.isfinite(a.std) else 0) + (b.std if math.isfinite(b.std) else 0)]
+    unclear = [f"{a.arm.label} / {b.arm.label}" for a, b in zip(paper_order, paper_order[1:]) if not separated(a, b)]
     if len(compared) > LISTED_ARMS:  # a benchmark grid: the orderings are too long to read, the numbers are not
         swapped = sum((a.arm.paper - b.arm.paper) * (a.value - b.value) < 0 for i, a in enumerate(compared)
                       for b in compared[i + 1:])
@@ -586,14 +595,13 @@ def best_along(rows: list[Row], dimension: int, name: str) -> str:
         if r.arm.paper is not None and len(parts) > dimension:
             rest = " / ".join(parts[:dimension] + parts[dimension + 1:])
             groups.setdefault(rest, []).append((parts[dimension], r))
-    agree, separated, differ = 0, 0, []
+    agree, apart_count, differ = 0, 0, []
     compared = {rest: members for rest, members in groups.items() if len(members) > 1}
     for rest, members in compared.items():
         ours = sorted(members, key=lambda m: m[1].value, reverse=True)
         paper = max(members, key=lambda m: m[1].arm.paper)
-        spread = sum(r.std if math.isfinite(r.std) else 0.0 for _, r in ours[:2])
-        apart = ours[0][1].value - ours[1][1].value > spread
-        separated += apart
+        apart = separated(ours[0][1], ours[1][1])
+        apart_count += apart
         if ours[0][0] == paper[0]:
             agree += 1
         else:
@@ -603,7 +611,7 @@ def best_along(rows: list[Row], dimension: int, name: str) -> str:
         return f"No two {name}s with numbers here share the other labels: no {name} to compare."
     text = (f"Which {name} does best, the rest held fixed (the paper's reading of this table): ours is the "
             f"paper's in {agree} of {len(compared)} comparisons, and the seeds separate our best from the "
-            f"runner-up (by more than the sum of their spreads) in {separated} of the {len(compared)}.")
+            f"runner-up (by more than the sum of their spreads) in {apart_count} of the {len(compared)}.")
     return text + (f" Where they differ: {'; '.join(differ)}." if differ else "")
 
 
