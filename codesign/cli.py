@@ -10,6 +10,7 @@ only, to keep ``codesign --help`` fast.
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Optional
@@ -256,6 +257,9 @@ def _disabled_plugins(argv: list[str]) -> list[str]:
 def main(argv: list[str] | None = None) -> None:
     """Console entry point: user errors print one red line and exit 1, bugs show a traceback."""
     args = sys.argv[1:] if argv is None else argv
+    # standard output carries a command's result (`dir=$(codesign run ...)`): no Taichi banner on it;
+    # summary.json records Taichi's version, and a user's own setting wins
+    os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
     try:
         app = build_app(load_plugins(_disabled_plugins(args)))
         app(args=args, prog_name="codesign")

@@ -85,6 +85,7 @@ def test_the_plugins_environment_representation_and_optimizer_run_and_replay(plu
                                       "optimizer": {"name": "hill_climb", "iterations": 3}}))
     result = codesign(plugin_dir, "run", str(recipe), "--run-dir", str(tmp_path / "run"), "--no-progress")
     assert result.returncode == 0, result.stderr
+    assert result.stdout == f"{tmp_path / 'run'}\n"  # Taichi's banners go elsewhere: `dir=$(codesign run ...)` works
     rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     best = [row["best_return"] for row in rows]
     assert best == sorted(best) and best[-1] == max(row["episode_return"] for row in rows)

@@ -1,7 +1,9 @@
 """One place that initialises Taichi, so the arch and precision are chosen once, by the scene."""
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import weakref
 
 import taichi as ti
@@ -55,17 +57,18 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
         _end_program()
     arch_obj = _gpu() if arch == "gpu" else {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan, "metal": ti.metal}[arch]
     cache_dir = os.environ.get("CODESIGN_TAICHI_CACHE")  # default: Taichi's own (~/.cache/taichi)
-    ti.init(
-        arch=arch_obj,
-        default_fp=ti.f64 if dtype == "float64" else ti.f32,
-        default_ip=ti.i32,
-        offline_cache=True,
-        offline_cache_max_size_of_files=CACHE_LIMIT_BYTES,
-        **({"offline_cache_file_path": cache_dir} if cache_dir else {}),
-        # `codesign bench engine --profile`; named only when on (named at all, it changes the kernel cache's keys)
-        **({"kernel_profiler": True} if os.environ.get("CODESIGN_KERNEL_PROFILER") == "1" else {}),
-        log_level=ti.WARN,
-    )
+    with contextlib.redirect_stdout(sys.stderr):  # its "Starting on arch=..." line: stdout is for results
+        ti.init(
+            arch=arch_obj,
+            default_fp=ti.f64 if dtype == "float64" else ti.f32,
+            default_ip=ti.i32,
+            offline_cache=True,
+            offline_cache_max_size_of_files=CACHE_LIMIT_BYTES,
+            **({"offline_cache_file_path": cache_dir} if cache_dir else {}),
+            # `codesign bench engine --profile`; named only when on (named at all, it changes the kernel cache's keys)
+            **({"kernel_profiler": True} if os.environ.get("CODESIGN_KERNEL_PROFILER") == "1" else {}),
+            log_level=ti.WARN,
+        )
     _current = wanted
     generation += 1
 
