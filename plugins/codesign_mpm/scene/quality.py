@@ -39,8 +39,7 @@ QUALITY: dict[str, Quality] = {
                              "rankings; in the desert a third under the reference (its 0.02 of sand is 0.64 cells "
                              "thick)"),
     "default": Quality(dx=1 / 48, particles_per_cell=8, cover_particles_per_cell=8, cfl=0.4, dtype="float32",
-                       purpose="the settings every recipe had before presets (kept so that results do not move); "
-                               "day-to-day optimisation at one fixed setting. A gait's distance from rest within "
+                       purpose="day-to-day optimisation at one fixed setting. A gait's distance from rest within "
                                "8% of the reference (the terrain's offset within a cell moves it +-15%), gaits "
                                "ranked as paper ranks them (Spearman 0.90 over 24 random gaits, docs/log/contact.md "
                                "section 23); from a stress-free start (design optimisation) a third off: confirm a "
