@@ -1,5 +1,5 @@
 """Forward speed where a substep's fixed cost shows (issue 48): `codesign bench engine`'s tiny
-(about 1k particles, dx 1/32) and small (about 7.7k, dx 1/64) scenes' forward particle-substeps/s
+(1,024 particles, dx 1/32) and small (7,200, dx 1/64) scenes' forward particle-substeps/s
 (medians of 9), and the median wall time of the quick start's forward episode (40 control steps,
 what evaluate, CMA-ES and NEAT play per candidate). Prints one JSON line labelled with the first
 argument; to compare two commits, run it alternately in a checkout of each (the same machine,

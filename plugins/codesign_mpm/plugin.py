@@ -170,8 +170,10 @@ def codesign_cli(app: typer.Typer) -> None:
 
     @bench.command("environments")
     def bench_environments(
-        scale: list[str] = typer.Option(["small"], "--scale", help="small (dx 1/64, about 18k particles) and/or "
-                                        "paper (dx 1/128, about 144k particles, 130k in the ocean); repeatable."),
+        scale: list[str] = typer.Option(["small"], "--scale", help="small (dx 1/64, a cover sized for about 18k "
+                                        "particles in all) and/or paper (dx 1/128, for about 145k; ground and ice, "
+                                        "without a cover, 61k; the ocean's water covers the robot: about 190k); "
+                                        "repeatable."),
         env: list[str] = typer.Option(list(PRESETS), "--env", help="Environment preset(s); repeatable."),
         arch: str = typer.Option("cpu", "--arch", help="cpu or cuda."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bar."),
@@ -256,9 +258,9 @@ def codesign_cli(app: typer.Typer) -> None:
 
     @bench.command("engine")
     def bench_engine(
-        scale: list[str] = typer.Option(["small"], "--scale", help="tiny (about 1k particles, dx 1/32), small "
-                                        "(about 7.7k, dx 1/64), paper (about 61k, dx 1/128) and/or large "
-                                        "(about 490k, dx 1/128); repeatable."),
+        scale: list[str] = typer.Option(["small"], "--scale", help="tiny (1,024 particles, dx 1/32), small "
+                                        "(7,200, dx 1/64), paper (61,504, dx 1/128) and/or large "
+                                        "(476,288, dx 1/128); repeatable."),
         measure: list[str] = typer.Option([], "--measure", help="forward, float64, dense, backward, batch, "
                                           "scatter, adaptive, flip, contact; repeatable; default: all."),
         frames: int = typer.Option(200, "--frames", min=1, help="Frames of the differentiable episode."),

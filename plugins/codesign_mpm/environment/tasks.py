@@ -78,9 +78,10 @@ def _unit(v: torch.Tensor) -> torch.Tensor:
 
 class MovementSpeed(Task):
     """The centre of mass's mean velocity along the target direction over the control step,
-    (com_x - com_x_before) . d / control_dt, so that an episode's rewards add up to its distance;
-    not the velocity at the step's end, which a stroke locked in phase to the control steps can
-    show at its fast instants only (an ocean gait scored 2.8 times its distance that way)."""
+    (com_x - com_x_before) . d / control_dt, so that an episode's return is its distance over
+    control_dt (its mean speed times its steps); not the velocity at the step's end, which a
+    stroke locked in phase to the control steps can show at its fast instants only (an ocean gait
+    scored 2.8 times its distance that way)."""
 
     needs_particles = False
 

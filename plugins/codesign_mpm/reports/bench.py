@@ -23,11 +23,11 @@ from codesign_mpm.reports.machine import run_module
 SCALES = {
     # the issue's scene (a): about 60k particles, dx 1/128 in the unit cube
     "paper": dict(dx=1 / 128, robot=[0.25, 0.12, 0.12], terrain=0.05),
-    # a CPU-friendly default: about 7.7k particles, dx 1/64
+    # a CPU-friendly default: 7,200 particles, dx 1/64
     "small": dict(dx=1 / 64, robot=[0.25, 0.12, 0.12], terrain=0.1),
-    # the quick start's size: about 1k particles, dx 1/32 (populations of small scenes)
+    # the quick start's grid (dx 1/32) with scene (a)'s box: 1,024 particles (populations of small scenes)
     "tiny": dict(dx=1 / 32, robot=[0.25, 0.12, 0.12], terrain=0.1),
-    # a GPU's size: scene (a)'s robot twice as large each way, about 490k particles, dx 1/128
+    # a GPU's size: scene (a)'s robot twice as large each way, 476,288 particles, dx 1/128
     "large": dict(dx=1 / 128, robot=[0.5, 0.24, 0.24], terrain=0.05),
 }
 ENGINE_MEASURES = ("forward", "float64", "dense", "backward", "batch", "scatter", "adaptive", "flip", "contact")
