@@ -8,12 +8,15 @@ for 12 iterations, with that representation in its default configuration (the pr
 in a 0.3 x 0.15 x 0.15 workspace: their slender fish are under 2 cells thick in the quick
 start's 0.2 x 0.08 x 0.08), and for `neat_cppn`
 the `cppn_neat` recipe; then `codesign render --still` draws each run's best design to
-docs/images/designs/optimised_NAME.png, and the table of best returns, torn-off mass and
-thinnest part is printed for docs/designs.md (a run that fails is listed with its error).
+docs/images/designs/optimised_NAME.png, each run's best episode and returns go to
+docs/data/designs-optimised.jsonl, and the table of best returns, torn-off mass and thinnest part
+is printed for docs/designs.md (a run that fails is listed with its error). ``--runs DIR`` keeps
+the runs, to replay and render them.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
@@ -24,6 +27,7 @@ import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "images" / "designs"
+DATA = ROOT / "docs" / "data" / "designs-optimised.jsonl"  # each run's best episode and its returns
 GRADIENT_BASED = ["particle", "voxel", "implicit", "diff_cppn", "sdf_lerp", "wasserstein"]
 PRIMITIVE_BLENDS = ("sdf_lerp", "wasserstein")
 CODESIGN = str(Path(sys.executable).parent / "codesign")  # the command of this environment
@@ -49,10 +53,12 @@ def run(recipe: Path, run_dir: Path) -> dict | str:
     return json.loads((run_dir / "best" / "info.json").read_text())
 
 
-def main(names: list[str]) -> None:
+def main(names: list[str], runs: Path | None = None) -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
+        root = runs or Path(tmp)
+        root.mkdir(parents=True, exist_ok=True)
         jobs = []
         for name in GRADIENT_BASED:
             path = Path(tmp) / f"{name}.yaml"
@@ -61,12 +67,19 @@ def main(names: list[str]) -> None:
         jobs.append(("neat_cppn", ROOT / "recipes" / "cppn_neat.yaml"))
         jobs = [(name, path) for name, path in jobs if not names or name in names]
         for name, recipe in jobs:
-            run_dir = Path(tmp) / f"run_{name}"
+            run_dir = root / f"run_{name}"
             info = run(recipe, run_dir)
             if isinstance(info, dict):
                 subprocess.run([CODESIGN, "render", str(run_dir), "--still", str(OUT / f"optimised_{name}.png"),
                                 "--camera", "oblique", "--no-progress"], check=True)
+                metrics = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+                info = dict(info, returns=[row["episode_return"] for row in metrics],
+                            wall_s=round(metrics[-1]["wall_time"], 1))
             rows.append((name, info))
+    with DATA.open("w") as records:
+        for name, info in rows:
+            records.write(json.dumps({"representation": name, **(info if isinstance(info, dict) else {"error": info})})
+                          + "\n")
     print("| representation | best return | torn off | thinnest part (cells) |\n| --- | --- | --- | --- |")
     for name, info in rows:
         if isinstance(info, str):
@@ -76,4 +89,8 @@ def main(names: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("names", nargs="*", help="representations (default: all)")
+    parser.add_argument("--runs", type=Path, help="keep the runs here (default: a temporary folder)")
+    arguments = parser.parse_args()
+    main(arguments.names, arguments.runs)
