@@ -45,7 +45,10 @@ def recipe_for(name: str) -> dict:
 
 
 def run(recipe: Path, run_dir: Path) -> dict | str:
-    """The run's best/info.json, or the error it stopped with."""
+    """The run's best/info.json, or the error it stopped with; a completed run in `run_dir` is kept."""
+    summary = run_dir / "summary.json"
+    if summary.exists() and json.loads(summary.read_text())["status"] == "completed":
+        return json.loads((run_dir / "best" / "info.json").read_text())
     done = subprocess.run([CODESIGN, "run", str(recipe), "--run-dir", str(run_dir), "--no-progress"],
                           capture_output=True, text=True)
     if done.returncode:
@@ -73,7 +76,7 @@ def main(names: list[str], runs: Path | None = None) -> None:
                 subprocess.run([CODESIGN, "render", str(run_dir), "--still", str(OUT / f"optimised_{name}.png"),
                                 "--camera", "oblique", "--no-progress"], check=True)
                 metrics = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-                info = dict(info, returns=[row["episode_return"] for row in metrics],
+                info = dict(info, returns=[row.get("episode_return") for row in metrics],  # None: not played
                             wall_s=round(metrics[-1]["wall_time"], 1))
             rows.append((name, info))
     with DATA.open("w") as records:
