@@ -17,7 +17,7 @@ import numpy as np
 
 from codesign.bodies import ANIMALS
 from codesign_mpm import BodySpec, Scene, build_particles
-from codesign_mpm.scene.integrity import MIN_THICKNESS_CELLS, _cube_core, lattice_index, lattice_occupancy
+from codesign_mpm.scene.integrity import thick_enough
 from codesign_mpm.scene.spec import MuscleSpec, ShapeSpec
 
 SIZE = [0.3, 0.15, 0.15]
@@ -31,10 +31,8 @@ def measure(animal: str, dx: float) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the thin-part warning: measured below instead
         particles = build_particles(scene)
-    spacing = dx / PARTICLES_PER_AXIS
     x = particles.x.astype(np.float64)
-    thick = _cube_core(lattice_occupancy(x, spacing), round(MIN_THICKNESS_CELLS * PARTICLES_PER_AXIS), spacing, dx)
-    thin = ~thick[tuple(lattice_index(x, spacing).T)]
+    thin = ~thick_enough(x, np.ones(len(x), dtype=bool), dx / PARTICLES_PER_AXIS, dx)
     active = particles.muscle.max(1) > 0
     group = np.where(active, particles.muscle.argmax(1), -1)
     groups = range(particles.muscle.shape[1])

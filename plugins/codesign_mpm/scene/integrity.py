@@ -74,12 +74,11 @@ def lattice_occupancy(points: np.ndarray, spacing: float) -> np.ndarray:
     return grid
 
 
-def resolved_body(points: np.ndarray, occupied: np.ndarray, spacing: float, dx: float,
-                  min_cells: float = MIN_THICKNESS_CELLS) -> np.ndarray:
-    """The part of a design the grid can carry: of the `occupied` points of a sampling lattice of
-    `spacing`, those within `SURFACE_STEP_CELLS` of a cube at least `min_cells` grid cells wide that
-    fits in the occupied set (`thinnest_cells`' measure), then only the largest piece their stencils
-    join (`pieces`). (N,) bool; all False where nothing is thick enough."""
+def thick_enough(points: np.ndarray, occupied: np.ndarray, spacing: float, dx: float,
+                 min_cells: float = MIN_THICKNESS_CELLS) -> np.ndarray:
+    """Of the `occupied` points of a sampling lattice of `spacing`, those in parts at least
+    `min_cells` grid cells thick (`thinnest_cells`' measure: within `SURFACE_STEP_CELLS` of a cube
+    that fits in the occupied set). (N,) bool."""
     occupied = np.asarray(occupied, dtype=bool)
     if not occupied.any():
         return occupied
@@ -87,7 +86,15 @@ def resolved_body(points: np.ndarray, occupied: np.ndarray, spacing: float, dx: 
     grid = np.zeros(index.max(0) + 2, dtype=bool)
     grid[tuple(index[occupied].T)] = True
     core = _cube_core(grid, max(1, math.ceil(min_cells * dx / spacing - 1e-9)), spacing, dx)
-    kept = occupied & core[tuple(index.T)]
+    return occupied & core[tuple(index.T)]
+
+
+def resolved_body(points: np.ndarray, occupied: np.ndarray, spacing: float, dx: float,
+                  min_cells: float = MIN_THICKNESS_CELLS) -> np.ndarray:
+    """The part of a design the grid can carry: its points in parts at least `min_cells` grid cells
+    thick (`thick_enough`), then only the largest piece their stencils join (`pieces`). (N,) bool;
+    all False where nothing is thick enough."""
+    kept = thick_enough(points, occupied, spacing, dx, min_cells)
     if kept.any():
         label = pieces(points[kept], dx)
         kept[np.flatnonzero(kept)] = label == np.bincount(label).argmax()
