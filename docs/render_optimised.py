@@ -25,6 +25,8 @@ from pathlib import Path
 
 import yaml
 
+from codesign.runner import read_metrics
+
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "images" / "designs"
 DATA = ROOT / "docs" / "data" / "designs-optimised.jsonl"  # each run's best episode and its returns
@@ -75,14 +77,17 @@ def main(names: list[str], runs: Path | None = None) -> None:
             if isinstance(info, dict):
                 subprocess.run([CODESIGN, "render", str(run_dir), "--still", str(OUT / f"optimised_{name}.png"),
                                 "--camera", "oblique", "--no-progress"], check=True)
-                metrics = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+                metrics = read_metrics(run_dir / "metrics.jsonl")
                 info = dict(info, returns=[row.get("episode_return") for row in metrics],  # None: not played
                             wall_s=round(metrics[-1]["wall_time"], 1))
             rows.append((name, info))
-    with DATA.open("w") as records:
-        for name, info in rows:
-            records.write(json.dumps({"representation": name, **(info if isinstance(info, dict) else {"error": info})})
-                          + "\n")
+    records = {}  # the representations not run this time keep their records
+    if DATA.exists():
+        records = {row["representation"]: row for row in map(json.loads, DATA.read_text().splitlines())}
+    for name, info in rows:
+        records[name] = {"representation": name, **(info if isinstance(info, dict) else {"error": info})}
+    DATA.write_text("".join(json.dumps(records[name]) + "\n" for name in [*GRADIENT_BASED, "neat_cppn"]
+                            if name in records))
     print("| representation | best return | torn off | thinnest part (cells) |\n| --- | --- | --- | --- |")
     for name, info in rows:
         if isinstance(info, str):
