@@ -31,6 +31,9 @@ class DesignSpace:
     """K, the largest number of muscles the robot may have."""
     default_stiffness: float
     """Young's modulus of the robot material when a design does not say otherwise."""
+    stiffness: np.ndarray | None = None
+    """(N,) the environment's own Young's modulus per point (a labelled body's parts, its passive
+    material); None: `default_stiffness` everywhere."""
     bounds: np.ndarray | None = None
     """(2, 3) lower and upper corner of the workspace's box; None: the points' bounding box."""
     muscle: np.ndarray | None = None

@@ -13,6 +13,11 @@ def _symmetric():
 
 
 @dataclass
+class FixedConfig:
+    """No options: the body is the environment's (robot.body and its labels)."""
+
+
+@dataclass
 class ParticleConfig:
     init_occupancy_logit: float = field(
         default=3.0, metadata={"help": "initial geometry logit; sigmoid(3) = 0.95 keeps every particle"}
@@ -27,7 +32,8 @@ class ParticleConfig:
         default="environment",
         metadata={"choices": ["grid", "environment", "uniform", "random"],
                   "help": "environment: the environment's own muscles (an animal's groups; a box's grid of "
-                          "robot.muscle_groups), as the paper's animals; grid: a near-cubic block grid of K "
+                          "robot.muscle_groups), material outside every group in each alike (representation "
+                          "fixed keeps it passive); grid: a near-cubic block grid of K "
                           "muscles; uniform: equal logits, every particle in every muscle alike (the released "
                           "SoftZoo's start for design optimisation); random: N(0, 1)"},
     )

@@ -32,6 +32,8 @@ def codesign_register(registry: PluginRegistrar) -> None:
         "Per-particle logits (SoftZoo PBR): sigmoid occupancy and stiffness, softmax muscle membership.",
     )
     for name, module, cls, description in (
+        ("fixed", "fixed", "Fixed", "The environment's body as it is (Table 1's animals): its stiffness, muscles and "
+                                    "fibres, passive material passive; nothing to optimise."),
         ("voxel", "voxel", "Voxel", "Per-voxel logits on a grid of its own (SoftZoo VBR), trilinear or nearest."),
         ("implicit", "implicit", "Implicit", "An MLP on particle coordinates, plane distances and radius."),
         ("diff_cppn", "diff_cppn", "DiffCPPN", "A fixed-topology CPPN of mixed activations with gated edges."),

@@ -18,6 +18,7 @@ from codesign.plugins import get_registry
 from codesign_mpm.environment.bridge import simulate
 from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, RobotConfig, TerrainConfig
 from codesign_mpm.engine import Simulator
+from codesign_mpm.engine.time_step import time_step
 from codesign_mpm.scene.sampling import build_particles
 from codesign_mpm.environment.env import LocomotionEnv
 from codesign_mpm.scene.spec import BodySpec, MuscleSpec, Scene, SceneError, ShapeSpec, validate_scene
@@ -83,6 +84,39 @@ def test_an_animal_is_sampled_with_its_groups_fibres_and_stiffness():
     np.testing.assert_allclose(base.fiber[legs], np.tile([0.0, 1.0, 0.0], (legs.sum(), 1)))
     np.testing.assert_allclose(base.youngs_modulus[legs], 1.2e4)  # the legs are stiffer
     np.testing.assert_array_equal(space.muscle, base.muscle)
+
+
+def test_the_fixed_representation_is_the_labelled_body_with_its_passive_material_passive():
+    """The panda (legs muscled, the rest passive) with the released SoftZoo's passive material: a fifth
+    of the density, 10 times the stiffness; the fixed body keeps it, and its wave sets the time step."""
+    plain, light = make_env(body="panda", size=ANIMAL_SIZE), make_env(body="panda", size=ANIMAL_SIZE,
+                                                                      passive_density=0.2, passive_stiffness=10.0)
+    try:
+        passive = light.base_particles.muscle.sum(1) == 0
+        assert 0.5 < passive.mean() < 0.9
+        for name, factor in (("density", 0.2), ("youngs_modulus", 10.0)):
+            before, after = getattr(plain.base_particles, name), getattr(light.base_particles, name)
+            np.testing.assert_allclose(after[passive], factor * before[passive])
+            np.testing.assert_array_equal(after[~passive], before[~passive])
+        design = build_representation("fixed", light)()
+        assert build_representation("fixed", light).parameters() == []
+        kept = light.design_mask(design.occupancy)  # parts under 2 cells thick at dx 1/32 are dropped
+        particles = light.design_particles(design)
+        for name in ("density", "youngs_modulus", "muscle", "volume"):
+            np.testing.assert_array_equal(getattr(particles, name)[particles.robot],
+                                          getattr(light.base_particles, name)[kept], err_msg=name)
+        assert (particles.muscle[particles.robot][passive[kept]] == 0).all()  # no actuation outside the groups
+        # the CFL step from the passive material's P-wave, c = sqrt((lambda + 2 mu) / rho), now the fastest
+        E, nu, rho = 10.0 * plain.base_particles.youngs_modulus[passive][0], 0.2, 0.2 * 1e3
+        c = np.sqrt(E * (1 - nu) / ((1 + nu) * (1 - 2 * nu) * rho))
+        step = time_step(light.scene, light.design_particles(design))
+        assert step.stable_dt == pytest.approx(light.scene.cfl * light.scene.dx / c, rel=1e-9)
+    finally:
+        plain.close()
+        light.close()
+    with pytest.raises(RecipeError, match=r"environment.robot.passive_density: 0.2 would do nothing: robot.body 'box' "
+                                          r"has no passive material"):
+        make_env(passive_density=0.2)
 
 
 def test_box_workspaces_are_unchanged_and_say_their_bounds():

@@ -121,6 +121,12 @@ class RobotConfig:
     muscle_stiffness_ratio: float = field(default=0.3, metadata={
         "ge": 0, "help": "muscle stiffness s / E: the active stress is s a (F f)(F f)^T; admissible while s 0.3 <= "
                          "0.3 x the shear modulus: <= 0.417 at Poisson's ratio 0.2 (codesign_mpm.materials)"})
+    passive_density: float = field(default=1.0, metadata={
+        "gt": 0, "help": "a library body's or annotated file's passive material (no muscle group): density relative "
+                         "to `density` (the SoftZoo release's animals: 0.2)"})
+    passive_stiffness: float = field(default=1.0, metadata={
+        "gt": 0, "help": "the same material's Young's modulus relative to the body's (the SoftZoo release's animals: "
+                         "10); a stiffer, lighter material has a faster wave, so more substeps"})
     particles_per_cell: Optional[int] = field(default=None, metadata={
         "choices": [1, 8, 27, 64], "help": "null = the environment's quality preset's"})
     rest_on: str = field(default="terrain", metadata={

@@ -83,9 +83,10 @@ def robot_shape(robot: RobotConfig) -> tuple[ShapeSpec, MuscleSpec]:
         raise environment_error("robot.body_file", f"{robot.body_file!r} is set but robot.body is {robot.body!r}; "
                                                    "set robot.body: file (or body_file: null)")
     grid = MuscleSpec(groups=list(robot.muscle_groups), fiber=[1.0, 0.0, 0.0],
-                      stiffness_ratio=robot.muscle_stiffness_ratio)
+                      stiffness_ratio=robot.muscle_stiffness_ratio, passive_density=robot.passive_density,
+                      passive_stiffness=robot.passive_stiffness)
     if robot.body in ("box", "ellipsoid"):
-        return ShapeSpec(kind=robot.body, size=list(robot.size)), grid
+        return ShapeSpec(kind=robot.body, size=list(robot.size)), _without_passive(robot, grid)
     if robot.body != "file":
         return ShapeSpec(kind="body", body=robot.body, size=list(robot.size)), replace(grid, layout="body")
     if not robot.body_file:
@@ -96,7 +97,17 @@ def robot_shape(robot: RobotConfig) -> tuple[ShapeSpec, MuscleSpec]:
     except BodyError as exc:
         raise environment_error("robot.body_file", str(exc)) from exc
     shape = ShapeSpec(kind="body", file=robot.body_file, size=list(robot.size))
-    return shape, replace(grid, layout="body") if body.n_groups else grid
+    return shape, replace(grid, layout="body") if body.n_groups else _without_passive(robot, grid)
+
+
+def _without_passive(robot: RobotConfig, grid: MuscleSpec) -> MuscleSpec:
+    """A grid of muscles covers the whole body: passive material's settings would do nothing, so say so."""
+    for name in ("passive_density", "passive_stiffness"):
+        if getattr(robot, name) != 1.0:
+            raise environment_error(f"robot.{name}", (
+                f"{getattr(robot, name)!r} would do nothing: robot.body {robot.body!r} has no passive material (its "
+                "grid of robot.muscle_groups covers it); only a library body or an annotated file has; leave it 1"))
+    return grid
 
 
 def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
@@ -203,6 +214,7 @@ class LocomotionEnv(Environment):
         self.spacing = config.dx / round(config.robot.particles_per_cell ** (1 / 3))  # the robot's sampling lattice
         base = self.base_particles
         self.design_space = DesignSpace(points=base.x.copy(), n_actuators=k, default_stiffness=config.robot.youngs_modulus,
+                                        stiffness=base.youngs_modulus.copy(),
                                         bounds=np.stack([base.x.min(0) - self.spacing / 2, base.x.max(0) + self.spacing / 2]),
                                         muscle=base.muscle.copy(), fiber=base.fiber.copy(), keep=self.resolved)
         self.action_dim = k

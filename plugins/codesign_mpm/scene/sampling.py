@@ -238,6 +238,10 @@ def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarra
     fields = _fields(i, body, x, total_volume / n, muscle, fiber, ratio)
     if labels is not None:
         fields["youngs_modulus"] = fields["youngs_modulus"] * labels.stiffness
+    if body.muscles is not None and body.muscles.layout == "body":
+        passive = labels.groups < 0
+        fields["density"][passive] *= body.muscles.passive_density
+        fields["youngs_modulus"][passive] *= body.muscles.passive_stiffness
     return fields
 
 

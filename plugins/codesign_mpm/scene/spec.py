@@ -82,6 +82,10 @@ class MuscleSpec:
     fiber: List[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])
     stiffness_ratio: float = 0.3  # at most materials.max_stiffness_ratio(max_action, nu): 0.417 at 0.3 and nu 0.2
     layout: str = "grid"  # grid: `groups` and `fiber` as above; body: the body's muscle groups and fibres
+    # layout body: the body's passive material (no muscle group) relative to the body's material. The
+    # SoftZoo release's animals: a fifth of the density, 10 times the stiffness (light, stiff bones)
+    passive_density: float = 1.0
+    passive_stiffness: float = 1.0
 
 
 @dataclass
@@ -276,6 +280,9 @@ def _validate_body(key: str, body: BodySpec) -> None:
             _fail(f"{key}.muscles.fiber", list(m.fiber), "a non-zero direction")
         if m.stiffness_ratio < 0:
             _fail(f"{key}.muscles.stiffness_ratio", m.stiffness_ratio, "must be >= 0")
+        for name in ("passive_density", "passive_stiffness"):
+            if not getattr(m, name) > 0:
+                _fail(f"{key}.muscles.{name}", getattr(m, name), "must be > 0")
         if m.layout not in MUSCLE_LAYOUTS:
             _fail(f"{key}.muscles.layout", m.layout, f"one of {', '.join(MUSCLE_LAYOUTS)}")
         if m.layout == "body" and shape.kind != "body":
