@@ -92,6 +92,19 @@ def test_a_mode_the_parts_cannot_do_fails_before_any_episode(tmp_path, optimizer
     assert not (tmp_path / "run" / "best").exists()
 
 
+def test_a_fixed_body_trains_its_controller_alone_and_keeps_its_design(tmp_path):
+    """The `fixed` representation's design is numpy and has no parameters: CMA-ES trains the controller
+    (its default mode, control) and keeps the body as the environment gives it."""
+    recipe = {**TOY_CMA, "representation": {"name": "fixed"}, "optimizer": {**TOY_CMA["optimizer"], "generations": 3}}
+    run_dir = runner.run(resolve_recipe(recipe), run_dir=tmp_path / "run", progress=False)
+    assert len(metrics(run_dir)) == 3
+    design = np.load(run_dir / "best" / "design.npz")
+    assert (design["occupancy"] == 1).all() and np.allclose(design["muscle"].sum(1), 1)  # the toy's grid muscles
+    with pytest.raises(RecipeError, match=r"representation 'FixedRepresentation' has no trainable parameters"):
+        runner.run(resolve_recipe({**recipe, "optimizer": {"name": "cma_es", "optimize": "both"}}),
+                   run_dir=tmp_path / "both", progress=False)
+
+
 def test_eval_of_a_run_without_a_best_says_so(tmp_path):
     run_dir = runner.run(resolve_recipe({**TOY_CMA, "optimizer": {"name": "evaluate"}}), run_dir=tmp_path / "r",
                          progress=False)
