@@ -127,6 +127,9 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
         ray_address: Optional[str] = typer.Option(
             None, "--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else a local instance)."
         ),
+        arm: Optional[list[str]] = typer.Option(
+            None, "--arm", help="Run only the arms whose label has this part (e.g. Diff-physics, 'Baby seal'; "
+                                "repeatable: every one); the table holds every finished run, a later run the rest."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
     ) -> None:
         """Run one of the paper's studies (every arm x seed, continuing a killed one) and print its table."""
@@ -140,7 +143,7 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
             if report and studies.seed_points(spec, directory):
                 _stderr.print(f"reporting the committed {studies.data_path(spec)}", markup=False, highlight=False)
             directory = studies.run_study(spec, study_dir, progress=not no_progress, backend=backend,
-                                          ray_address=ray_address)
+                                          ray_address=ray_address, arms=arm or ())
         if docs:
             _stderr.print(f"wrote {studies.publish(spec, directory)}", markup=False, highlight=False)
         _stderr.print((directory / "section.md").read_text(encoding="utf-8"), markup=False, highlight=False,

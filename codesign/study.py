@@ -22,7 +22,7 @@ import statistics
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 from omegaconf import OmegaConf
 from scipy.stats import kendalltau
@@ -351,48 +351,79 @@ def study_dir(study: Study, directory: str | Path | None) -> Path:
     return Path(STUDIES_DIR) / f"{study.name}{suffix}"
 
 
+def select_arms(study: Study, parts: Sequence[str]) -> tuple[Arm, ...]:
+    """The arms whose label has every one of `parts` among its " / "-separated parts (all for none):
+    cheap arms first (e.g. Table 1's "Diff-physics"), the rest in a later run of the same study."""
+    unknown = [part for part in parts if not any(part in arm.label.split(" / ") for arm in study.arms)]
+    if unknown:
+        known = sorted({part for arm in study.arms for part in arm.label.split(" / ")})
+        raise CodesignError(f"--arm {unknown[0]!r}: no arm of study {study.name} has it; its arms' parts: "
+                            + ", ".join(known))
+    chosen = tuple(arm for arm in study.arms if all(part in arm.label.split(" / ") for part in parts))
+    if not chosen:
+        raise CodesignError(f"--arm {' --arm '.join(map(repr, parts))}: no arm of study {study.name} has all of them")
+    return chosen
+
+
 def run_study(study: Study, directory: str | Path | None = None, *, progress: bool = True,
-              backend: str | None = None, ray_address: str | None = None) -> Path:
-    """Run every arm (an arm already under way or done is continued, not restarted); then tabulate.
-    With `backend` "ray", every arm's runs at once as Ray tasks (see `_run_on_ray`)."""
+              backend: str | None = None, ray_address: str | None = None, arms: Sequence[str] = ()) -> Path:
+    """Run every arm, or those `select_arms` picks from `arms` (an arm already under way or done is
+    continued, not restarted); then tabulate every finished run. With `backend` "ray", the arms'
+    runs at once as Ray tasks (see `_run_on_ray`)."""
     if backend not in (None, "local", "ray"):
         raise CodesignError(f"--backend {backend!r}: choose from local, ray")
     root = study_dir(study, directory)
     if study.analysis is not None:
-        if backend == "ray":
+        if backend == "ray" or arms:
             raise CodesignError(f"study {study.name} is an analysis (it measures points, not runs): "
-                                f"run it without --backend ray")
+                                f"run it without --backend ray or --arm")
         findings = _analysis(study.analysis)(study, root, progress)
         (root / "section.md").write_text(_heading(study) + findings.rstrip() + "\n\n" + _data_line(study) + "\n"
                                          + _differs(study), encoding="utf-8")
         return root
     for arm in study.arms:  # every arm checked before anything runs
         resolve_recipe(arm_recipe(study, arm, root), default_name=arm.slug)
+    chosen = select_arms(study, arms)
     if backend == "ray":
-        _run_on_ray(study, root, ray_address, progress)
+        _run_on_ray(study, root, ray_address, progress, chosen)
     else:
-        _run_here(study, root, progress)
+        _run_here(study, root, progress, chosen)
     write_results(study, root)
     return root
 
 
-def _run_here(study: Study, root: Path, progress: bool) -> None:
-    """The preparatory run, then arm after arm: its seeds, then its no-action episode."""
+def _needs_prepare(study: Study, chosen: tuple[Arm, ...]) -> bool:
+    return study.prepare is not None and (study.prepared_arms is None
+                                          or any(arm.label in study.prepared_arms for arm in chosen))
+
+
+def _own_stills(study: Study, root: Path, chosen: tuple[Arm, ...]) -> dict[str, Path]:
+    """The no-action episodes `chosen` plays: those that live in a chosen arm's directory (`still_dirs`).
+    One that lives in an arm not chosen waits for it: written first, it would leave that arm's
+    directory non-empty before its sweep starts."""
+    if not study.still:
+        return {}
+    mine = {root / arm.slug for arm in chosen}
+    return {slug: still for slug, still in still_dirs(study, root).items() if still.parent in mine}
+
+
+def _run_here(study: Study, root: Path, progress: bool, chosen: tuple[Arm, ...]) -> None:
+    """The preparatory run, then arm after arm (of `chosen`): its seeds, then its no-action episode."""
     from codesign import sweep as sweeps
 
-    if study.prepare is not None and not sweeps.finished(root / PREPARE_DIR):
+    if _needs_prepare(study, chosen) and not sweeps.finished(root / PREPARE_DIR):
         if progress:
             print(f"[{study.name}] first: {study.prepare.label}", file=sys.stderr, flush=True)
         sweeps.execute({**prepare_recipe(study), "run_dir": str(root / PREPARE_DIR)}, progress=progress)
-    stills = still_dirs(study, root)
-    for i, arm in enumerate(study.arms):
+    stills = _own_stills(study, root, chosen)
+    for i, arm in enumerate(chosen):
         arm_dir = root / arm.slug
         resume = (arm_dir / sweeps.SWEEP_FILE).is_file()
         if progress:
-            print(f"[{study.name}] arm {i + 1}/{len(study.arms)}: {arm.label}"
+            print(f"[{study.name}] arm {i + 1}/{len(chosen)}: {arm.label}"
                   + (" (continuing)" if resume else ""), file=sys.stderr, flush=True)
         _arm_sweep(arm_recipe(study, arm, root), arm_dir, resume, progress=progress)
-        if study.still and not sweeps.finished(stills[arm.slug]):
+        if arm.slug in stills and not sweeps.finished(stills[arm.slug]):
             sweeps.execute({**still_recipe(study, arm), "run_dir": str(stills[arm.slug])}, progress=progress)
 
 
@@ -403,7 +434,7 @@ def _arm_sweep(data: dict, arm_dir: Path, resume: bool, backend: str | None = No
     sweeps.run_sweep(resolve_recipe(data), sweep_dir=arm_dir, resume=resume, backend=backend, progress=progress)
 
 
-def _run_on_ray(study: Study, root: Path, address: str | None, progress: bool) -> None:
+def _run_on_ray(study: Study, root: Path, address: str | None, progress: bool, chosen: tuple[Arm, ...]) -> None:
     """The preparatory run first (the arms it names start from it), then every arm's sweep at once,
     each a Ray task holding no CPU whose seeds run as Ray tasks of one CPU (one GPU where the
     cluster has them), and the no-action episodes beside them. `root` must be on a filesystem that
@@ -413,22 +444,23 @@ def _run_on_ray(study: Study, root: Path, address: str | None, progress: bool) -
 
     ray = sweeps.connect_ray(address)
     run = sweeps.run_task(ray)
-    if study.prepare is not None and not sweeps.finished(root / PREPARE_DIR):
+    if _needs_prepare(study, chosen) and not sweeps.finished(root / PREPARE_DIR):
         if progress:
             print(f"[{study.name}] first: {study.prepare.label} (Ray)", file=sys.stderr, flush=True)
         ray.get(run.remote({**prepare_recipe(study), "run_dir": str(root / PREPARE_DIR)}))
     arm_task = ray.remote(num_cpus=0)(_arm_sweep)
     jobs = {}
-    for arm in study.arms:
+    for arm in chosen:
         arm_dir = root / arm.slug
         jobs[arm_task.remote(arm_recipe(study, arm, root), arm_dir, (arm_dir / sweeps.SWEEP_FILE).is_file(),
                              "ray")] = arm.label
     if study.still:
-        for still, arm in {still_dirs(study, root)[arm.slug]: arm for arm in reversed(study.arms)}.items():
+        stills = _own_stills(study, root, chosen)
+        for still, arm in {stills[arm.slug]: arm for arm in reversed(chosen) if arm.slug in stills}.items():
             if not sweeps.finished(still):  # each played once, from the first arm that shares it
                 jobs[run.remote({**still_recipe(study, arm), "run_dir": str(still)})] = f"no action ({still.parent.name})"
     if progress:
-        print(f"[{study.name}] {len(study.arms)} arms and {len(jobs) - len(study.arms)} no-action episodes "
+        print(f"[{study.name}] {len(chosen)} arms and {len(jobs) - len(chosen)} no-action episodes "
               f"on Ray", file=sys.stderr, flush=True)
     errors = []
     while jobs:

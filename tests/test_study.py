@@ -94,6 +94,23 @@ def test_a_rerun_continues_the_study_and_reruns_no_finished_run(tmp_path, toy_st
     assert summary.stat().st_mtime_ns == before and (tmp_path / "s" / "table.md").read_text() == table
 
 
+def test_arm_runs_the_arms_chosen_first_and_a_later_run_the_rest(tmp_path, toy_study, cli):
+    root = tmp_path / "s"
+    code, _, err = cli("study", str(toy_study), "--dir", str(root), "--arm", "Tight bound", "--no-progress")
+    assert code == 0, err
+    assert len(list((root / "tight_bound").glob("t*-seed*/summary.json"))) == 2
+    assert not list(root.glob("loose_bound/t*-seed*"))
+    assert "**Under way**: 2 of 4 runs finished" in (root / "section.md").read_text()
+    first = next((root / "tight_bound").glob("t*-seed0")) / "summary.json"
+    before = first.stat().st_mtime_ns
+    code, _, err = cli("study", str(toy_study), "--dir", str(root), "--no-progress")
+    assert code == 0, err
+    assert first.stat().st_mtime_ns == before and len(list(root.glob("loose_bound/t*-seed*/summary.json"))) == 2
+    code, _, err = cli("study", str(toy_study), "--dir", str(root), "--arm", "Medium bound")
+    assert code != 0 and "--arm 'Medium bound': no arm of study toy_bound has it; its arms' parts: Loose bound, " \
+                         "Tight bound" in err
+
+
 def test_a_scale_changes_seeds_and_settings_and_an_unknown_scale_names_the_allowed_ones(toy_study):
     tiny = load_study(str(toy_study), "tiny")
     assert tiny.seeds == (3,) and tiny.recipe["optimizer"]["episodes"] == 1
