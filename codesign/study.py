@@ -454,11 +454,10 @@ def _run_on_ray(study: Study, root: Path, address: str | None, progress: bool, c
         arm_dir = root / arm.slug
         jobs[arm_task.remote(arm_recipe(study, arm, root), arm_dir, (arm_dir / sweeps.SWEEP_FILE).is_file(),
                              "ray")] = arm.label
-    if study.still:
-        stills = _own_stills(study, root, chosen)
-        for still, arm in {stills[arm.slug]: arm for arm in reversed(chosen) if arm.slug in stills}.items():
-            if not sweeps.finished(still):  # each played once, from the first arm that shares it
-                jobs[run.remote({**still_recipe(study, arm), "run_dir": str(still)})] = f"no action ({still.parent.name})"
+    stills = _own_stills(study, root, chosen)
+    for still, arm in {stills[arm.slug]: arm for arm in reversed(chosen) if arm.slug in stills}.items():
+        if not sweeps.finished(still):  # each played once, from the first arm that shares it
+            jobs[run.remote({**still_recipe(study, arm), "run_dir": str(still)})] = f"no action ({still.parent.name})"
     if progress:
         print(f"[{study.name}] {len(chosen)} arms and {len(jobs) - len(chosen)} no-action episodes "
               f"on Ray", file=sys.stderr, flush=True)
