@@ -53,6 +53,11 @@ class Arm:
     def slug(self) -> str:
         return re.sub(r"[^a-z0-9]+", "_", self.label.lower()).strip("_")
 
+    @property
+    def parts(self) -> list[str]:
+        """A grid arm's labels, one per dimension ("a / b / ..."); a listed arm's label alone."""
+        return self.label.split(" / ")
+
 
 @dataclass(frozen=True)
 class Study:
@@ -295,6 +300,11 @@ def prepare_recipe(study: Study) -> dict:
             "seed": study.seeds[0]}
 
 
+def _starts_from_prepare(study: Study, arm: Arm) -> bool:
+    """Whether the study's preparatory run names this arm (or every arm)."""
+    return study.prepare is not None and (study.prepared_arms is None or arm.label in study.prepared_arms)
+
+
 def arm_recipe(study: Study, arm: Arm, root: Path = Path(STUDIES_DIR)) -> dict:
     """The recipe of one arm: the base with its keys set (a section given a new `name` is replaced,
     as in any recipe), swept over the study's seeds; with a preparatory run (in `root`) that names
@@ -304,7 +314,7 @@ def arm_recipe(study: Study, arm: Arm, root: Path = Path(STUDIES_DIR)) -> dict:
     if isinstance(environment, dict) and "name" in environment:  # presets share one schema: keep the base's keys
         changes["environment"] = deep_merge(study.recipe.get("environment") or {}, environment)
     data = merge_recipes(study.recipe, changes)
-    if study.prepare is not None and (study.prepared_arms is None or arm.label in study.prepared_arms):
+    if _starts_from_prepare(study, arm):
         data["init_controller"] = str(root / PREPARE_DIR)
     data["name"] = f"{study.name}-{arm.slug}"
     data["sweep"] = {"method": "grid", "metric": {"name": "best.episode_return", "goal": "maximize"},
@@ -354,12 +364,12 @@ def study_dir(study: Study, directory: str | Path | None) -> Path:
 def select_arms(study: Study, parts: Sequence[str]) -> tuple[Arm, ...]:
     """The arms whose label has every one of `parts` among its " / "-separated parts (all for none):
     cheap arms first (e.g. Table 1's "Diff-physics"), the rest in a later run of the same study."""
-    unknown = [part for part in parts if not any(part in arm.label.split(" / ") for arm in study.arms)]
+    known = {part for arm in study.arms for part in arm.parts}
+    unknown = [part for part in parts if part not in known]
     if unknown:
-        known = sorted({part for arm in study.arms for part in arm.label.split(" / ")})
         raise CodesignError(f"--arm {unknown[0]!r}: no arm of study {study.name} has it; its arms' parts: "
-                            + ", ".join(known))
-    chosen = tuple(arm for arm in study.arms if all(part in arm.label.split(" / ") for part in parts))
+                            + ", ".join(sorted(known)))
+    chosen = tuple(arm for arm in study.arms if all(part in arm.parts for part in parts))
     if not chosen:
         raise CodesignError(f"--arm {' --arm '.join(map(repr, parts))}: no arm of study {study.name} has all of them")
     return chosen
@@ -393,8 +403,7 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
 
 
 def _needs_prepare(study: Study, chosen: tuple[Arm, ...]) -> bool:
-    return study.prepare is not None and (study.prepared_arms is None
-                                          or any(arm.label in study.prepared_arms for arm in chosen))
+    return any(_starts_from_prepare(study, arm) for arm in chosen)
 
 
 def _own_stills(study: Study, root: Path, chosen: tuple[Arm, ...]) -> dict[str, Path]:
@@ -622,7 +631,7 @@ def best_along(rows: list[Row], dimension: int, name: str) -> str:
     their standard deviations over seeds."""
     groups: dict[str, list[tuple[str, Row]]] = {}
     for r in rows:
-        parts = r.arm.label.split(" / ")
+        parts = r.arm.parts
         if r.arm.paper is not None and len(parts) > dimension:
             rest = " / ".join(parts[:dimension] + parts[dimension + 1:])
             groups.setdefault(rest, []).append((parts[dimension], r))
