@@ -214,7 +214,7 @@ def test_muscle_groups_correspond_by_place_across_primitives():
     np.testing.assert_array_equal(actuators[1][renumbered], [0, 1, 2, 3])  # part q drives actuator q in both
     np.testing.assert_array_equal(actuators[2][:3], [0, 1, 2])
     assert set(actuators[2][3:]) <= {3, 4, 5} and len(set(actuators[2])) == 5  # the empty ones take what is left
-    with pytest.raises(RecipeError, match=r"primitives\[0\]: 'caterpillar' has 6 muscle groups, more than the robot's "
+    with pytest.raises(RecipeError, match=r"primitives\[0\]: 'caterpillar' has 12 muscle groups, more than the robot's "
                                           r"4 actuators"):
         build("sdf_lerp", primitives=["caterpillar", "fish"])
 
