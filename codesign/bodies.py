@@ -379,10 +379,10 @@ CATERPILLAR_SEGMENTS = 6
 def caterpillar_body() -> Body:
     """A caterpillar: a chain of round segments with a pair of prolegs under each.
 
-    Each segment is two muscles, its left and its right half (with the leg on that side), fibres
-    along the body: a wave of contractions passing from tail to head is the caterpillar's crawl,
-    and one side contracting more than the other bends it, its turn. One muscle per segment
-    would be mirror-symmetric about the body's midplane and could not turn it.
+    Each segment (numbered from the tail) is two muscles, its left and its right half with the leg
+    on that side, fibres along the body: a wave of contractions passing from tail to head is the
+    caterpillar's crawl, and one side contracting more than the other bends it, its turn. One
+    muscle per segment would be mirror-symmetric about the body's midplane and could not turn it.
     """
     parts = []
     spacing = 0.17
@@ -393,8 +393,7 @@ def caterpillar_body() -> Body:
         parts.append(Part(ellipsoid([x, 0, 0], [0.1, r, r]), group=_split(lambda p: p[:, 2] < 0, left, right)))
         for sign, group in ((-1, left), (1, right)):
             parts.append(Part(ellipsoid([x, -0.1, sign * 0.055], [0.03, 0.04, 0.03]), group=group))
-    names = tuple(f"segment {i + 1} (from the tail), {side}"
-                  for i in range(CATERPILLAR_SEGMENTS) for side in ("left", "right"))
+    names = tuple(f"segment {i + 1} {side}" for i in range(CATERPILLAR_SEGMENTS) for side in ("left", "right"))
     return normalized(PartsBody("caterpillar", parts, names, blend=0.04))
 
 

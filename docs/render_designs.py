@@ -10,6 +10,7 @@ to the fish.
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -25,6 +26,7 @@ from codesign.plugins import get_registry  # noqa: E402
 OUT = Path(__file__).resolve().parent / "images" / "designs"
 REPRESENTATIONS = ["particle", "voxel", "implicit", "diff_cppn", "sdf_lerp", "wasserstein", "neat_cppn"]
 COLORS = plt.get_cmap("tab10")
+PAIRED_COLORS = plt.get_cmap("tab20")
 
 
 VIEWS = {"side": (0, -90), "top": (90, -90), "front": (0, 0)}  # (elevation, azimuth) of the camera
@@ -32,7 +34,8 @@ VIEWS = {"side": (0, -90), "top": (90, -90), "front": (0, 0)}  # (elevation, azi
 
 def scatter(ax, points: np.ndarray, groups: np.ndarray, size: float, view: tuple[float, float] = (20, -60)) -> None:
     """Points in 3-D, x along the page, y up, coloured by group (grey: -1)."""
-    colors = np.where(groups[:, None] >= 0, COLORS(np.maximum(groups, 0) % 10), (0.75, 0.75, 0.75, 1.0))
+    colors = COLORS if groups.max() < 10 else PAIRED_COLORS  # a left and right pair: one hue, dark and light
+    colors = np.where(groups[:, None] >= 0, colors(np.maximum(groups, 0) % colors.N), (0.75, 0.75, 0.75, 1.0))
     ax.scatter(points[:, 0], points[:, 2], points[:, 1], c=colors, s=size, linewidths=0, depthshade=True)
     lo, hi = points.min(0), points.max(0)
     half = (hi - lo).max() / 2
@@ -74,7 +77,7 @@ def render_animal_views() -> None:
             ax = fig.add_subplot(1, 3, i + 1, projection="3d")
             scatter(ax, points, groups, 2.0, angles)
             ax.set_title(view, fontsize=8, y=0.92)
-        fig.suptitle(f"{name}: {', '.join(body.group_names)}", fontsize=7, y=0.99)
+        fig.suptitle(textwrap.fill(f"{name}: {', '.join(body.group_names)}", 120), fontsize=7, y=0.99)
         fig.subplots_adjust(0, 0, 1, 0.92, wspace=0)
         fig.savefig(OUT / f"body_{name}_views.png")
         plt.close(fig)
