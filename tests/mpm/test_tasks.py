@@ -45,14 +45,34 @@ def test_movement_speed_is_the_distance_covered_over_the_step_not_the_velocity_a
         task.reward(RobotFrame(7, 7 * DT, w @ x, w @ v))
 
 
+@pytest.mark.parametrize("measure", ["tangent", "angular_momentum"])
 @pytest.mark.parametrize("omega", [1.5, -0.7])
-def test_turning_of_a_rigid_rotation_is_its_rate_times_the_mean_distance_from_the_axis(omega):
-    task, _ = started(Turning([0.0, 1.0, 0.0]))
+def test_turning_of_a_rigid_rotation_is_its_rate_times_the_mean_distance_from_the_axis(omega, measure):
+    task, _ = started(Turning([0.0, 1.0, 0.0], measure))
     w = MASS.numpy() / MASS.sum().item()
     com = w @ REST
-    v = np.cross([0.0, omega, 0.0], REST - com)
+    # a translation on top does not turn it (the tangents' mean reads absolute velocities, as the paper's)
+    drift = np.array([0.2, -0.1, 0.3]) if measure == "angular_momentum" else np.zeros(3)
+    v = np.cross([0.0, omega, 0.0], REST - com) + drift
     radius = np.linalg.norm((REST - com)[:, [0, 2]], axis=1)
     assert float(task.reward(frame(1, REST, v))) == pytest.approx(omega * (w @ radius), rel=1e-9)
+
+
+def test_bending_without_angular_momentum_scores_as_turning_by_tangents_only():
+    """Material near the axis swinging counter-clockwise and material far from it clockwise, with no
+    angular momentum in all: the tangents' mean (the paper's measure) is positive, the body's
+    angular velocity zero."""
+    w = MASS.numpy() / MASS.sum().item()
+    r = REST - w @ REST
+    radius2 = (r[:, [0, 2]] ** 2).sum(1)
+    inner = radius2 < np.median(radius2)
+    spin = np.where(inner, 1.0, -(w[inner] @ radius2[inner]) / (w[~inner] @ radius2[~inner]))  # rates: zero net momentum
+    v = np.cross([0.0, 1.0, 0.0], r) * spin[:, None]
+    tangent = float(started(Turning([0.0, 1.0, 0.0]))[0].reward(frame(1, REST, v)))
+    momentum = float(started(Turning([0.0, 1.0, 0.0], "angular_momentum"))[0].reward(frame(1, REST, v)))
+    assert tangent > 0.005 and abs(momentum) < 1e-12
+    with pytest.raises(ValueError, match="turning measure 'yaw': choose from tangent, angular_momentum"):
+        Turning([0.0, 1.0, 0.0], "yaw")
 
 
 def test_quintic_meets_its_boundary_conditions():

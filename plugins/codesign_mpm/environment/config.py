@@ -175,6 +175,12 @@ class TaskConfig:
         "help": "movement_speed | turning | velocity_tracking | waypoint_following, or a registered task"})
     direction: list[float] = _vector([1.0, 0.0, 0.0], "movement_speed: target heading (normalised)")
     up: list[float] = _vector([0.0, 1.0, 0.0], "turning: counter-clockwise about this axis")
+    turning_measure: str = field(default="tangent", metadata={
+        "choices": ["tangent", "angular_momentum"],
+        "help": "turning: tangent, the particles' mean velocity along their tangents about the centre of mass "
+                "(the paper's; a bending body earns it too), or angular_momentum, the body's angular velocity "
+                "(angular momentum over moment of inertia) times their mean distance from the axis; the two "
+                "agree on a rigid rotation"})
     offset: list[float] = _vector([0.3, 0.0, 0.0], "path tasks: end point minus the start centre of mass")
     start_velocity: list[float] = _vector([0.0, 0.0, 0.0], "path tasks: velocity at the start of the path")
     end_velocity: list[float] = _vector([0.0, 0.0, 0.0], "path tasks: velocity at the end")

@@ -99,18 +99,37 @@ class MovementSpeed(Task):
         return self.direction
 
 
-class Turning(Task):
-    """Mass-weighted mean velocity along each particle's counter-clockwise tangent about `up`
-    through the centre of mass: sum m v . unit(up x (x - com)) / sum m."""
+TURNING_MEASURES = ("tangent", "angular_momentum")
 
-    def __init__(self, up) -> None:
+
+class Turning(Task):
+    """Counter-clockwise turning about `up` through the centre of mass.
+
+    `tangent` (the paper's): the mass-weighted mean velocity along each particle's unit tangent,
+    sum m v . unit(up x (x - com)) / sum m. A bending body earns it too: particles near the axis
+    count as much as far ones, so inner material swinging one way and outer material the other
+    scores without the body turning. `angular_momentum`: the body's angular velocity about `up`,
+    its angular momentum over its moment of inertia (both about the centre of mass), times the
+    particles' mass-weighted mean distance from the axis, which deformation without angular
+    momentum does not earn. The two agree on a rigid rotation (rate times mean distance).
+    """
+
+    def __init__(self, up, measure: str = "tangent") -> None:
+        if measure not in TURNING_MEASURES:
+            raise ValueError(f"turning measure {measure!r}: choose from {', '.join(TURNING_MEASURES)}")
         u = np.asarray(up, dtype=np.float64)
-        self.up = u / np.linalg.norm(u)
+        self.up, self.measure = u / np.linalg.norm(u), measure
 
     def reward(self, frame: RobotFrame) -> torch.Tensor:
         up = torch.as_tensor(self.up, dtype=frame.x.dtype).expand_as(frame.x)
-        tangent = _unit(torch.cross(up, frame.x - frame.com_x, dim=1))
-        return (frame.mass * (frame.v * tangent).sum(1)).sum() / frame.mass.sum()
+        arm = torch.cross(up, frame.x - frame.com_x, dim=1)  # |arm|: the distance from the axis
+        if self.measure == "tangent":
+            return (frame.mass * (frame.v * _unit(arm)).sum(1)).sum() / frame.mass.sum()
+        weight = frame.mass / frame.mass.sum()
+        momentum = weight @ (arm * (frame.v - frame.com_v)).sum(1)  # up . sum m (x - com) x v, per unit mass
+        inertia = weight @ (arm * arm).sum(1)
+        distance = weight @ torch.sqrt((arm * arm).sum(1) + NORM_EPS ** 2)
+        return momentum / (inertia + NORM_EPS ** 2) * distance
 
     def info(self, step: int) -> np.ndarray:
         return self.up
@@ -220,6 +239,6 @@ def _path_args(config) -> tuple:
 
 
 register_task("movement_speed", lambda config: MovementSpeed(config.direction))
-register_task("turning", lambda config: Turning(config.up))
+register_task("turning", lambda config: Turning(config.up, config.turning_measure))
 register_task("velocity_tracking", lambda config: VelocityTracking(*_path_args(config)))
 register_task("waypoint_following", lambda config: WaypointFollowing(*_path_args(config)))
