@@ -71,6 +71,18 @@ def test_bending_without_angular_momentum_scores_as_turning_by_tangents_only():
     tangent = float(started(Turning([0.0, 1.0, 0.0]))[0].reward(frame(1, REST, v)))
     momentum = float(started(Turning([0.0, 1.0, 0.0], "angular_momentum"))[0].reward(frame(1, REST, v)))
     assert tangent > 0.005 and abs(momentum) < 1e-12
+    # both are smooth in the particles' positions and velocities (what diff-physics differentiates)
+    for measure in ("tangent", "angular_momentum"):
+        task = started(Turning([0.0, 1.0, 0.0], measure))[0]
+        x0 = torch.as_tensor(REST[:12]).requires_grad_()
+        v0 = torch.as_tensor(v[:12] + 0.1).requires_grad_()
+        weights = MASS[:12]
+
+        def reward(x, v):
+            w = weights / weights.sum()
+            return task.reward(RobotFrame(1, DT, w @ x, w @ v, weights, x, v))
+
+        assert torch.autograd.gradcheck(reward, (x0, v0)), measure
     with pytest.raises(ValueError, match="turning measure 'yaw': choose from tangent, angular_momentum"):
         Turning([0.0, 1.0, 0.0], "yaw")
 
