@@ -443,10 +443,19 @@ def _arm_sweep(data: dict, arm_dir: Path, resume: bool, backend: str | None = No
     sweeps.run_sweep(resolve_recipe(data), sweep_dir=arm_dir, resume=resume, backend=backend, progress=progress)
 
 
+def _play_after(arm_sweep: None, data: dict) -> str:
+    """Run `data` once the arm sweep whose directory holds it is done (Ray passes a task's result
+    only when it is ready): started beside it, it would leave the arm's directory non-empty before
+    the sweep began, which a new sweep refuses."""
+    from codesign import sweep as sweeps
+
+    return sweeps.execute(data)
+
+
 def _run_on_ray(study: Study, root: Path, address: str | None, progress: bool, chosen: tuple[Arm, ...]) -> None:
     """The preparatory run first (the arms it names start from it), then every arm's sweep at once,
     each a Ray task holding no CPU whose seeds run as Ray tasks of one CPU (one GPU where the
-    cluster has them), and the no-action episodes beside them. `root` must be on a filesystem that
+    cluster has them), and each no-action episode after the arm whose directory holds it. `root` must be on a filesystem that
     every node sees. A failed run stops nothing else; the finished runs are kept and a rerun
     continues from them."""
     from codesign import sweep as sweeps
@@ -458,15 +467,18 @@ def _run_on_ray(study: Study, root: Path, address: str | None, progress: bool, c
             print(f"[{study.name}] first: {study.prepare.label} (Ray)", file=sys.stderr, flush=True)
         ray.get(run.remote({**prepare_recipe(study), "run_dir": str(root / PREPARE_DIR)}))
     arm_task = ray.remote(num_cpus=0)(_arm_sweep)
-    jobs = {}
+    still_task = sweeps.run_task(ray, _play_after)
+    jobs, arm_jobs = {}, {}
     for arm in chosen:
         arm_dir = root / arm.slug
-        jobs[arm_task.remote(arm_recipe(study, arm, root), arm_dir, (arm_dir / sweeps.SWEEP_FILE).is_file(),
-                             "ray")] = arm.label
+        arm_jobs[arm_dir] = arm_task.remote(arm_recipe(study, arm, root), arm_dir,
+                                            (arm_dir / sweeps.SWEEP_FILE).is_file(), "ray")
+        jobs[arm_jobs[arm_dir]] = arm.label
     stills = _own_stills(study, root, chosen)
     for still, arm in {stills[arm.slug]: arm for arm in reversed(chosen) if arm.slug in stills}.items():
-        if not sweeps.finished(still):  # each played once, from the first arm that shares it
-            jobs[run.remote({**still_recipe(study, arm), "run_dir": str(still)})] = f"no action ({still.parent.name})"
+        if not sweeps.finished(still):  # each played once, from the first arm that shares it, after its owner's sweep
+            jobs[still_task.remote(arm_jobs[still.parent], {**still_recipe(study, arm), "run_dir": str(still)})] = \
+                f"no action ({still.parent.name})"
     if progress:
         print(f"[{study.name}] {len(chosen)} arms and {len(jobs) - len(chosen)} no-action episodes "
               f"on Ray", file=sys.stderr, flush=True)

@@ -28,7 +28,7 @@ import json
 import math
 import os
 import shutil
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -310,11 +310,12 @@ def connect_ray(address: str | None) -> Any:
     return ray
 
 
-def run_task(ray: Any) -> Any:
-    """`execute` as a Ray task: one CPU, and one GPU where the cluster has GPUs (the run's recipe
-    chooses its device: `arch: cuda` uses the GPU Ray gives it)."""
+def run_task(ray: Any, function: Callable[..., Any] = execute) -> Any:
+    """`execute` (or `function`, which runs one recipe as it does) as a Ray task: one CPU, and one
+    GPU where the cluster has GPUs (the run's recipe chooses its device: `arch: cuda` uses the GPU
+    Ray gives it)."""
     gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 else 0
-    return ray.remote(num_cpus=1, num_gpus=gpus)(execute)
+    return ray.remote(num_cpus=1, num_gpus=gpus)(function)
 
 
 class RayExecutor:
