@@ -455,9 +455,9 @@ def _play_after(arm_sweep: None, data: dict) -> str:
 def _run_on_ray(study: Study, root: Path, address: str | None, progress: bool, chosen: tuple[Arm, ...]) -> None:
     """The preparatory run first (the arms it names start from it), then every arm's sweep at once,
     each a Ray task holding no CPU whose seeds run as Ray tasks of one CPU (one GPU where the
-    cluster has them), and each no-action episode after the arm whose directory holds it. `root` must be on a filesystem that
-    every node sees. A failed run stops nothing else; the finished runs are kept and a rerun
-    continues from them."""
+    cluster has them), and each no-action episode after the arm whose directory holds it. `root`
+    must be on a filesystem that every node sees. A failed run stops nothing else; the finished
+    runs are kept and a rerun continues from them."""
     from codesign import sweep as sweeps
 
     ray = sweeps.connect_ray(address)

@@ -163,6 +163,10 @@ class TerrainConfig:
         "ge": 0, "help": "spring: damping ratio of each particle's contact, normal and tangential (1: critical)"})
 
 
+TURNING_MEASURES = ("tangent", "angular_momentum")
+"""How the turning task scores a step (codesign_mpm.environment.tasks.Turning)."""
+
+
 def _vector(default: list[float], help: str) -> Any:
     return field(default_factory=lambda: list(default), metadata={"min_len": 3, "help": help})
 
@@ -176,7 +180,7 @@ class TaskConfig:
     direction: list[float] = _vector([1.0, 0.0, 0.0], "movement_speed: target heading (normalised)")
     up: list[float] = _vector([0.0, 1.0, 0.0], "turning: counter-clockwise about this axis")
     turning_measure: str = field(default="tangent", metadata={
-        "choices": ["tangent", "angular_momentum"],
+        "choices": list(TURNING_MEASURES),
         "help": "turning: tangent, the particles' mean velocity along their tangents about the centre of mass "
                 "(the paper's; a bending body earns it too), or angular_momentum, the body's angular velocity "
                 "(angular momentum over moment of inertia) times their mean distance from the axis; the two "

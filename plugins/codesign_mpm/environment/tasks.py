@@ -20,6 +20,8 @@ from typing import Callable
 import numpy as np
 import torch
 
+from codesign_mpm.environment.config import TURNING_MEASURES
+
 HEAD_TAIL_FRACTION = 0.05
 """Velocity tracking: the head and tail are this fraction of the robot's particles at either end of its heading."""
 ALPHA_MAGNITUDE, ALPHA_DIRECTION = 0.1, 0.9
@@ -97,9 +99,6 @@ class MovementSpeed(Task):
 
     def info(self, step: int) -> np.ndarray:
         return self.direction
-
-
-TURNING_MEASURES = ("tangent", "angular_momentum")
 
 
 class Turning(Task):
