@@ -117,11 +117,11 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
         docs: bool = typer.Option(False, "--docs", help="Also write its section into docs/studies.md and its chart "
                                                         "into docs/images/studies/."),
         report: bool = typer.Option(False, "--report", help="Run nothing: write the table of the runs finished so "
-                                                            "far (a study under way, in --dir or its default), or, "
-                                                            "where none are, of the records committed in "
-                                                            "docs/data/studies/. An analysis reports from its points "
-                                                            "(the committed ones where none are here), measuring only "
-                                                            "those they lack."),
+                                                            "far (a study under way, in --dir or its default) "
+                                                            "and, for each arm with none there, of the records "
+                                                            "committed in docs/data/studies/. An analysis reports "
+                                                            "from its points (the committed ones where none are "
+                                                            "here), measuring only those they lack."),
         backend: Optional[str] = typer.Option(None, "--backend", help="local (the default: one run after another) "
                                                                        "or ray (every arm's runs at once as Ray tasks)."),
         ray_address: Optional[str] = typer.Option(
@@ -129,7 +129,8 @@ def build_app(plugin_manager: PluginManager) -> typer.Typer:
         ),
         arm: Optional[list[str]] = typer.Option(
             None, "--arm", help="Run only the arms whose label has this part (e.g. Diff-physics, 'Baby seal'; "
-                                "repeatable: every one); the table holds every finished run, a later run the rest."),
+                                "repeatable: every one); the table holds every finished run (the committed ones "
+                                "for arms not run here), a later run the rest."),
         no_progress: bool = typer.Option(False, "--no-progress", help="Hide the progress bars."),
     ) -> None:
         """Run one of the paper's studies (every arm x seed, continuing a killed one) and print its table."""

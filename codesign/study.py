@@ -398,7 +398,7 @@ def run_study(study: Study, directory: str | Path | None = None, *, progress: bo
         _run_on_ray(study, root, ray_address, progress, chosen)
     else:
         _run_here(study, root, progress, chosen)
-    write_results(study, root)
+    write_results(study, root, records_for_report(study, root))
     return root
 
 
@@ -758,14 +758,24 @@ def section(study: Study, rows: list[Row]) -> str:
 
 
 def records_for_report(study: Study, root: Path) -> list[dict]:
-    """The records of the runs finished in `root`; where it holds none, the committed ones
-    (docs/data/studies/), so a fresh clone rebuilds the docs' tables from data alone."""
+    """The records of the runs finished in `root`, and, for each arm with none there, the committed
+    ones (docs/data/studies/): a fresh clone rebuilds the docs' tables from data alone, and a study
+    too long for one machine's session goes on arm by arm (`--arm`) on the next without losing
+    the arms it published."""
     records = extract(study, root) if root.is_dir() else []
-    if not any("best" in r for r in records) and data_path(study).is_file():
-        _, records = read_records(data_path(study))
-        print(f"[{study.name}] no finished runs in {root}: reporting the committed {data_path(study)}",
-              file=sys.stderr, flush=True)
-    return records
+    committed = data_path(study)
+    if not committed.is_file():
+        return records
+    by_arm = {arm.label: i for i, arm in enumerate(study.arms)}
+    here = {r["arm"] for r in records if "best" in r}
+    stills_here = {r["arm"] for r in records if "still" in r}
+    adopted = [r for r in read_records(committed)[1] if r["arm"] in by_arm and r["arm"] not in here
+               and not ("still" in r and r["arm"] in stills_here)]
+    taken = sorted({r["arm"] for r in adopted if "best" in r})
+    if taken:
+        print(f"[{study.name}] {len(taken)} arm(s) with no finished run in {root}: reporting the committed "
+              f"{committed} for them", file=sys.stderr, flush=True)
+    return sorted(records + adopted, key=lambda r: by_arm[r["arm"]])
 
 
 def write_results(study: Study, root: Path, records: list[dict] | None = None) -> list[Row]:

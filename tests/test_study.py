@@ -219,6 +219,34 @@ def test_the_committed_records_alone_rebuild_a_published_section(tmp_path, toy_s
     assert docs_links((tmp_path / "none" / "section.md").read_text(), ["toy_bound.png"]) == published
 
 
+def test_a_study_continued_elsewhere_keeps_the_committed_arms_it_has_not_rerun(tmp_path, toy_study, cli,
+                                                                            monkeypatch):
+    """A study longer than one machine's session: the next machine runs the arms left (`--arm`), and
+    its table holds those runs and, for every arm it has no run of, the committed records."""
+    code, _, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
+    assert code == 0, err
+    repo = tmp_path / "repo"
+    (repo / "docs").mkdir(parents=True)
+    study = load_study(str(toy_study))
+    publish(study, tmp_path / "s", repo)
+    _, committed = read_records(data_path(study, repo))
+    # the committed loose-bound arm, marked so that its rows can be told from a rerun's
+    data_path(study, repo).write_text("".join(json.dumps(r) + "\n" for r in [
+        {"study": "toy_bound", "scale": "cpu"},
+        *({**r, "best": 1e3 * r["horizon"]} if "best" in r and r["arm"] == "Loose bound" else r for r in committed)]))
+    monkeypatch.chdir(repo)
+    code, _, err = cli("study", str(toy_study), "--dir", str(tmp_path / "next"), "--arm", "Tight bound",
+                       "--no-progress")
+    assert code == 0, err
+    assert "1 arm(s) with no finished run in" in err and not list((tmp_path / "next").glob("loose_bound/t*"))
+    rows = {r["arm"]: r for r in csv.DictReader((tmp_path / "next" / "table.csv").open())}
+    assert json.loads(rows["Loose bound"]["per_step"]) == [1e3, 1e3]  # the committed runs
+    ran = [json.loads((run / "summary.json").read_text())["best"]["episode_return"]
+           for run in sorted((tmp_path / "next" / "tight_bound").glob("t*-seed*"))]
+    assert json.loads(rows["Tight bound"]["per_step"]) == pytest.approx([r / committed[0]["horizon"] for r in ran])
+    assert "Under way" not in (tmp_path / "next" / "section.md").read_text()
+
+
 def test_publish_replaces_the_study_section_in_docs(tmp_path, toy_study, cli):
     cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
     repo = tmp_path / "repo"
