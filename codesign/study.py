@@ -761,7 +761,7 @@ def records_for_report(study: Study, root: Path) -> list[dict]:
     """The records of the runs finished in `root`, and, for each arm with none there, the committed
     ones (docs/data/studies/): a fresh clone rebuilds the docs' tables from data alone, and a study
     too long for one machine's session goes on arm by arm (`--arm`) on the next without losing
-    the arms it published."""
+    the arms it published. A no-action episode likewise (one played in an arm not run here)."""
     records = extract(study, root) if root.is_dir() else []
     committed = data_path(study)
     if not committed.is_file():
@@ -769,8 +769,8 @@ def records_for_report(study: Study, root: Path) -> list[dict]:
     by_arm = {arm.label: i for i, arm in enumerate(study.arms)}
     here = {r["arm"] for r in records if "best" in r}
     stills_here = {r["arm"] for r in records if "still" in r}
-    adopted = [r for r in read_records(committed)[1] if r["arm"] in by_arm and r["arm"] not in here
-               and not ("still" in r and r["arm"] in stills_here)]
+    adopted = [r for r in read_records(committed)[1]
+               if r["arm"] in by_arm and r["arm"] not in (stills_here if "still" in r else here)]
     taken = sorted({r["arm"] for r in adopted if "best" in r})
     if taken:
         print(f"[{study.name}] {len(taken)} arm(s) with no finished run in {root}: reporting the committed "

@@ -222,7 +222,8 @@ def test_the_committed_records_alone_rebuild_a_published_section(tmp_path, toy_s
 def test_a_study_continued_elsewhere_keeps_the_committed_arms_it_has_not_rerun(tmp_path, toy_study, cli,
                                                                             monkeypatch):
     """A study longer than one machine's session: the next machine runs the arms left (`--arm`), and
-    its table holds those runs and, for every arm it has no run of, the committed records."""
+    its table holds those runs and, for every arm it has no run (or no no-action episode) of, the
+    committed records."""
     code, _, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
     assert code == 0, err
     repo = tmp_path / "repo"
@@ -245,6 +246,10 @@ def test_a_study_continued_elsewhere_keeps_the_committed_arms_it_has_not_rerun(t
            for run in sorted((tmp_path / "next" / "tight_bound").glob("t*-seed*"))]
     assert json.loads(rows["Tight bound"]["per_step"]) == pytest.approx([r / committed[0]["horizon"] for r in ran])
     assert "Under way" not in (tmp_path / "next" / "section.md").read_text()
+    # the arms share one no-action episode, played in the loose bound's directory: committed, not rerun
+    assert not list((tmp_path / "next").rglob("still"))
+    stills = {r["arm"]: r["still"] for r in committed if "still" in r}
+    assert {arm: float(rows[arm]["still"]) for arm in rows} == pytest.approx(stills) and len(stills) == 2
 
 
 def test_publish_replaces_the_study_section_in_docs(tmp_path, toy_study, cli):
