@@ -32,7 +32,8 @@ class TrackingConfig:
     wandb: bool = field(default=False, metadata={"help": "also log to Weights & Biases"})
     wandb_mode: str = field(
         default="offline",
-        metadata={"choices": ["offline", "disabled", "online"], "help": "offline runs sync later with `wandb sync`"},
+        metadata={"choices": ["offline", "disabled", "online"],
+                  "help": "offline runs sync later with `wandb sync`; disabled (here or in $WANDB_MODE) starts no W&B"},
     )
     project: str = "codesign"
     group: str | None = None
