@@ -40,7 +40,7 @@ from codesign.plots import CURVE_FILE, learning_curve
 from codesign.progress import progress_bar
 from codesign.plugins import get_plugin_manager, get_registry
 from codesign.recipe import ResolvedRecipe, resolve_recipe
-from codesign.tracking import JsonlTracker, MultiTracker, Tracker, WandbTracker
+from codesign.tracking import JsonlTracker, MultiTracker, Tracker, WandbTracker, wandb_off
 
 if TYPE_CHECKING:
     from codesign.artifacts import EpisodeRecord
@@ -318,8 +318,7 @@ def evaluate_best(run_dir: str | Path, episodes: int = 1) -> list[float]:
 def _make_tracker(recipe: ResolvedRecipe, data: dict, run_dir: Path) -> Tracker:
     trackers: list[Tracker] = [JsonlTracker(run_dir / METRICS_FILE)]
     tracking = recipe.settings.tracking
-    # disabled, by the recipe or the environment: W&B is not started at all (its init alone takes 0.4 s a run)
-    if tracking.wandb and "disabled" not in (tracking.wandb_mode, os.environ.get("WANDB_MODE")):
+    if tracking.wandb and not wandb_off(tracking.wandb_mode):
         trackers.append(
             WandbTracker(
                 run_dir,

@@ -39,6 +39,7 @@ from codesign.errors import CodesignError, RecipeError
 from codesign.recipe import ResolvedRecipe, SweepConfig, merge_recipes, resolve_recipe
 from codesign.registry import suggest
 from codesign.runner import CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, fresh_dir, read_metrics
+from codesign.tracking import wandb_off
 
 if TYPE_CHECKING:
     import optuna
@@ -538,7 +539,7 @@ def write_summary(plan: Plan, directory: Path, study: optuna.Study) -> None:
               for c, run_dirs in _configurations(plan, directory, study)}
     plot = sweep_curves(curves, directory / CURVES_FILE, f"sweep {plan.name}", metric)
     tracking = plan.base["tracking"]
-    if tracking["wandb_mode"] != "disabled":
+    if not wandb_off(tracking["wandb_mode"]):
         from codesign.tracking import WandbTracker
 
         tracker = WandbTracker(directory, mode=tracking["wandb_mode"], project=tracking["project"], group=plan.name,

@@ -9,10 +9,17 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
+
+
+def wandb_off(mode: str) -> bool:
+    """Whether W&B is disabled, by the recipe's mode or by $WANDB_MODE: then it is not started at all
+    (its init alone takes 0.4 s)."""
+    return "disabled" in (mode, os.environ.get("WANDB_MODE"))
 
 
 class Tracker(ABC):
