@@ -12,7 +12,7 @@ import yaml
 from codesign import RecipeError
 from codesign.recipe import RECIPES_DIR, resolve_recipe
 from codesign.study import (DOCS_DATA, DOCS_PAGE, Arm, Row, arm_recipe, best_along, data_path, docs_links, load_study, publish,
-                            published_section, read_records, rows_from, section, verdict)
+                            Study, published_section, read_records, rows_from, section, verdict)
 
 SHIPPED = sorted((RECIPES_DIR / "studies").glob("*.yaml"))
 REPO = RECIPES_DIR.parent
@@ -198,15 +198,21 @@ def test_a_cell_whose_every_arm_does_no_better_than_no_action_is_said_and_not_ra
             in verdict(rows))
 
 
-def test_the_committed_records_alone_rebuild_a_published_section(tmp_path, toy_study, cli, monkeypatch):
-    """A fresh clone has no runs: `--report` then builds the table from docs/data/studies/, and
-    what it writes is what `--docs` published (every number traceable to the committed records)."""
-    code, out, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
+def _published_toy(tmp_path, toy_study, cli) -> tuple[Path, Study]:
+    """The toy study run in tmp_path/s and published into a repository of its own, tmp_path/repo."""
+    code, _, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
     assert code == 0, err
     repo = tmp_path / "repo"
     (repo / "docs").mkdir(parents=True)
     study = load_study(str(toy_study))
     publish(study, tmp_path / "s", repo)
+    return repo, study
+
+
+def test_the_committed_records_alone_rebuild_a_published_section(tmp_path, toy_study, cli, monkeypatch):
+    """A fresh clone has no runs: `--report` then builds the table from docs/data/studies/, and
+    what it writes is what `--docs` published (every number traceable to the committed records)."""
+    repo, study = _published_toy(tmp_path, toy_study, cli)
     header, records = read_records(data_path(study, repo))
     assert header == {"study": "toy_bound", "scale": "cpu"}
     runs = [r for r in records if "best" in r]
@@ -224,12 +230,7 @@ def test_a_study_continued_elsewhere_keeps_the_committed_arms_it_has_not_rerun(t
     """A study longer than one machine's session: the next machine runs the arms left (`--arm`), and
     its table holds those runs and, for every arm it has no run (or no no-action episode) of, the
     committed records."""
-    code, _, err = cli("study", str(toy_study), "--dir", str(tmp_path / "s"), "--no-progress")
-    assert code == 0, err
-    repo = tmp_path / "repo"
-    (repo / "docs").mkdir(parents=True)
-    study = load_study(str(toy_study))
-    publish(study, tmp_path / "s", repo)
+    repo, study = _published_toy(tmp_path, toy_study, cli)
     _, committed = read_records(data_path(study, repo))
     # the committed loose-bound arm, marked so that its rows can be told from a rerun's
     data_path(study, repo).write_text("".join(json.dumps(r) + "\n" for r in [
