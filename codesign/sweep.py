@@ -39,7 +39,7 @@ from codesign.errors import CodesignError, RecipeError
 from codesign.recipe import ResolvedRecipe, SweepConfig, merge_recipes, resolve_recipe
 from codesign.registry import suggest
 from codesign.runner import CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, fresh_dir, read_metrics
-from codesign.tracking import wandb_off
+from codesign.tracking import WandbTracker, wandb_off
 
 if TYPE_CHECKING:
     import optuna
@@ -540,8 +540,6 @@ def write_summary(plan: Plan, directory: Path, study: optuna.Study) -> None:
     plot = sweep_curves(curves, directory / CURVES_FILE, f"sweep {plan.name}", metric)
     tracking = plan.base["tracking"]
     if not wandb_off(tracking["wandb_mode"]):
-        from codesign.tracking import WandbTracker
-
         tracker = WandbTracker(directory, mode=tracking["wandb_mode"], project=tracking["project"], group=plan.name,
                                name=f"{plan.name}-summary", config={"sweep": dataclasses.asdict(plan.config)},
                                job_type="sweep-summary")
