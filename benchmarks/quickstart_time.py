@@ -50,11 +50,12 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     args = parser.parse_args()
     variants = [(name, Path(path).resolve()) for name, _, path in (c.partition("=") for c in args.checkouts)]
+    commits = {name: subprocess.run(["git", "-C", str(checkout), "rev-parse", "--short", "HEAD"], text=True,
+                                    capture_output=True, check=True).stdout.strip() for name, checkout in variants}
     for repeat in range(1, args.rounds + 1):
         for name, checkout in variants:
-            commit = subprocess.run(["git", "-C", str(checkout), "rev-parse", "--short", "HEAD"], text=True,
-                                    capture_output=True, check=True).stdout.strip()
-            print(json.dumps({"variant": name, "repeat": repeat, **one_run(checkout), "commit": commit}), flush=True)
+            print(json.dumps({"variant": name, "repeat": repeat, **one_run(checkout), "commit": commits[name]}),
+                  flush=True)
 
 
 if __name__ == "__main__":

@@ -133,6 +133,7 @@ def test_wandb_offline_run_is_written_inside_the_run_dir(tmp_path, toy_recipe, w
     assert list(offline_runs[0].glob("*.wandb"))  # the run's data, ready for `wandb sync`
     assert len(read_metrics(run_dir)) == 3  # the JSON-lines log is kept alongside
 
+
 @pytest.mark.parametrize("how", ["recipe", "environment"])
 def test_wandb_disabled_is_not_started_and_the_run_keeps_its_own_log(tmp_path, toy_recipe, wandb_offline, monkeypatch,
                                                                       how):
@@ -147,7 +148,6 @@ def test_wandb_disabled_is_not_started_and_the_run_keeps_its_own_log(tmp_path, t
         monkeypatch.setenv("WANDB_MODE", "disabled")
     run_dir = runner.run(resolve_recipe(toy_recipe), run_dir=tmp_path / "run", progress=False)
     assert len(read_metrics(run_dir)) == 3 and not (run_dir / "wandb").exists()
-
 
 
 def test_render_switch_renders_the_best_episode_through_a_plugin_and_logs_the_video(
