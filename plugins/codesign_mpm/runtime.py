@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import sys
 import weakref
@@ -53,6 +54,7 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
     if _current == wanted:
         return
     _memoize_source_positions()
+    _memoize_kernel_sources()
     if _current is not None:
         _end_program()
     arch_obj = _gpu() if arch == "gpu" else {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan, "metal": ti.metal}[arch]
@@ -124,6 +126,26 @@ def _memoize_source_positions() -> None:
     get_pos_info.memoized = True
     context.get_pos_info = get_pos_info
 
+
+
+def _memoize_kernel_sources() -> None:
+    """Have Taichi's frontend read each function's source once.
+
+    Taichi reads a `ti.func`'s source again every time a kernel inlines it, at every call site of
+    every kernel of every new storage; reading it (`inspect.getsourcelines`: the module's lines,
+    tokenized to find the function's block) was a fifth of the frontend's time for the quick
+    start's kernels (docs/log/performance-2026-11.md). A function object's source does not change,
+    so it is kept per function object: a function defined again is a new object, read afresh.
+    Taichi versions without these names in `kernel_impl` are left alone."""
+    from taichi.lang import kernel_impl
+
+    for name in ("getsourcelines", "getsourcefile"):
+        original = getattr(kernel_impl, name, None)
+        if original is None or getattr(original, "memoized", False):
+            continue
+        kept = functools.lru_cache(maxsize=None)(original)
+        kept.memoized = True
+        setattr(kernel_impl, name, kept)
 
 MAX_SCATTER_COPIES = 4
 """p2g on a CPU scatters each thread's chunk of particles into a private grid (2.5x to 4x faster

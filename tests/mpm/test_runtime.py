@@ -1,9 +1,11 @@
-"""codesign_mpm.runtime: Taichi set up once, its frontend's source excerpts formatted once per place."""
+"""codesign_mpm.runtime: Taichi set up once, its frontend's source excerpts formatted once per place and
+each function's source read once."""
 import gc
 import weakref
 
 import pytest
 import taichi as ti
+from taichi.lang import kernel_impl
 from taichi.lang.ast import ast_transformer_utils
 
 from codesign_mpm import runtime
@@ -35,6 +37,45 @@ def test_a_compile_error_still_quotes_the_line_at_fault_with_excerpts_kept():
         assert "^" in str(info.value)  # the excerpt's underline
     runtime.reset()
 
+
+
+def test_a_functions_source_is_read_once_however_many_kernels_inline_it():
+    """Taichi reads a ti.func's source at every call site; the kept copy serves all but the first.
+    It is kept per function object, text only: the same function made again with another value
+    (a new object) is read for itself and computes with its own value."""
+    runtime.init_taichi("cpu", "float32")
+    field = ti.field(float, shape=3)
+
+    def scale_by(factor):
+        @ti.func
+        def scaled(x):
+            return factor * x
+        return scaled
+
+    twice = scale_by(2.0)
+
+    @ti.kernel
+    def once():
+        field[0] = twice(1.0)
+
+    @ti.kernel
+    def nested():
+        field[1] = twice(twice(1.0))
+
+    before = kernel_impl.getsourcelines.cache_info()
+    once()
+    nested()
+    after = kernel_impl.getsourcelines.cache_info()
+    assert (after.misses - before.misses, after.hits - before.hits) == (3, 2)  # two kernels and `scaled` read once
+    thrice = scale_by(3.0)
+
+    @ti.kernel
+    def redefined():
+        field[2] = thrice(1.0)
+
+    redefined()
+    assert field.to_numpy().tolist() == [2.0, 4.0, 3.0]
+    runtime.reset()
 
 def test_ndarrays_outliving_their_program_are_never_collected():
     """Taichi frees a collected ndarray by its address in the *current* program, so an ndarray of an
