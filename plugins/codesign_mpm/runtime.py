@@ -127,7 +127,6 @@ def _memoize_source_positions() -> None:
     context.get_pos_info = get_pos_info
 
 
-
 def _memoize_kernel_sources() -> None:
     """Have Taichi's frontend read each function's source once.
 
@@ -146,6 +145,7 @@ def _memoize_kernel_sources() -> None:
         kept = functools.lru_cache(maxsize=None)(original)
         kept.memoized = True
         setattr(kernel_impl, name, kept)
+
 
 MAX_SCATTER_COPIES = 4
 """p2g on a CPU scatters each thread's chunk of particles into a private grid (2.5x to 4x faster

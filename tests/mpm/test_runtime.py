@@ -38,7 +38,6 @@ def test_a_compile_error_still_quotes_the_line_at_fault_with_excerpts_kept():
     runtime.reset()
 
 
-
 def test_a_functions_source_is_read_once_however_many_kernels_inline_it():
     """Taichi reads a ti.func's source at every call site; the kept copy serves all but the first.
     It is kept per function object, text only: the same function made again with another value
