@@ -148,17 +148,25 @@ def make_scene(config: LocomotionConfig, preset: EnvironmentPreset) -> Scene:
     return scene
 
 
-def _subset(particles: Particles, keep: np.ndarray) -> Particles:
+def _subset(particles: Particles, keep: np.ndarray | slice) -> Particles:
     return Particles(**{name: getattr(particles, name)[keep] for name in Particles.__dataclass_fields__})
 
 
 def _concat(first: Particles, second: Particles) -> Particles:
-    """Particles of both sets, in order; the cover has no actuators, so its muscle rows are zero."""
+    """Particles of both sets, in order; the cover has no actuators, so its muscle rows are zero.
+    Those rows are left as `np.zeros` allocates them, untouched: a terrain of millions of particles
+    costs nothing here for the muscles it does not have."""
     if second.n == 0:
         return first
-    second = replace(second, muscle=np.zeros((second.n, first.n_actuators)))
-    return Particles(**{name: np.concatenate([getattr(first, name), getattr(second, name)])
-                        for name in Particles.__dataclass_fields__})
+    muscle = np.zeros((first.n + second.n, first.n_actuators))
+    muscle[:first.n] = first.muscle
+    return Particles(muscle=muscle, **{name: np.concatenate([getattr(first, name), getattr(second, name)])
+                                       for name in Particles.__dataclass_fields__ if name != "muscle"})
+
+
+def _without_muscles(particles: Particles) -> Particles:
+    """The cover's particles carry no muscle columns: no copy of rows that are all zero."""
+    return replace(particles, muscle=np.zeros((particles.n, 0)))
 
 
 def _numpy(value: Any) -> np.ndarray:
@@ -208,8 +216,12 @@ class LocomotionEnv(Environment):
             everything = build_particles(self.scene)
         except SceneError as exc:
             raise RecipeError(f"invalid recipe: environment: the robot does not fit the scene: {exc}") from exc
-        self.base_particles: Particles = _subset(everything, everything.robot)
-        self.cover_particles: Particles = _subset(everything, ~everything.robot)
+        # the robot is the scene's first body, so its particles come first: both parts are views, not
+        # copies of a terrain that may hold millions of particles
+        n_robot = int(everything.robot.sum())
+        assert everything.robot[:n_robot].all(), "make_scene puts the robot first"
+        self.base_particles: Particles = _subset(everything, slice(0, n_robot))
+        self.cover_particles: Particles = _subset(_without_muscles(everything), slice(n_robot, None))
         k = self.base_particles.n_actuators
         self.spacing = config.dx / round(config.robot.particles_per_cell ** (1 / 3))  # the robot's sampling lattice
         base = self.base_particles
@@ -223,7 +235,7 @@ class LocomotionEnv(Environment):
         self.task = make_task(config.task)
         self.observer = Observer(config.observation, self.task, k, config.horizon, config.dx, height_map(self.scene))
         self.observation_dim = self.observer.dim
-        self.particles: Particles = _concat(self.base_particles, self.cover_particles)
+        self.particles: Particles = everything  # the robot, then the cover, as design_particles gives them
         cover = config.resolved_cover(preset)
         self._settled = cover.settled
         self._relaxed: tuple[tuple, Relaxed] | None = None  # (the body it is for, the relaxed start)

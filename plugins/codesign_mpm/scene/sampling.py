@@ -173,15 +173,17 @@ def build_particles(scene: Scene) -> Particles:
         if body.shape.kind == "layer":
             by_body[i] = _layer_particles(scene, i, body, list(by_body.values()))
     parts = [by_body[i] for i in range(len(scene.bodies))]
-    k_total = sum(p["muscle"].shape[1] for p in parts)
-    start = 0
+    # each body's muscles take their own block of columns; the rest stays as np.zeros allocates it,
+    # untouched, so a terrain of millions of particles costs nothing for the muscles it lacks
+    muscle = np.zeros((sum(len(p["x"]) for p in parts), sum(p["muscle"].shape[1] for p in parts)))
+    row = column = 0
     for p in parts:
-        k = p["muscle"].shape[1]
-        full = np.zeros((len(p["x"]), k_total))
-        full[:, start:start + k] = p["muscle"]
-        p["muscle"], start = full, start + k
+        own = p.pop("muscle")
+        n, k = own.shape
+        muscle[row:row + n, column:column + k] = own
+        row, column = row + n, column + k
     cat = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-    return Particles(**cat)
+    return Particles(muscle=muscle, **cat)
 
 
 def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarray]:
@@ -287,12 +289,13 @@ def _fields(i: int, body: BodySpec, x: np.ndarray, volume: float, muscle: np.nda
             ratio: float) -> dict[str, np.ndarray]:
     n, mat = len(x), body.material
     params = spec_params(mat)
+    # rows alike in every particle are read-only views; build_particles' concatenation writes them once
     return dict(
-        x=x, v=np.tile(np.asarray(body.velocity, dtype=float), (n, 1)), volume=np.full(n, volume),
+        x=x, v=np.broadcast_to(np.asarray(body.velocity, dtype=float), (n, 3)), volume=np.full(n, volume),
         density=np.full(n, mat.density), youngs_modulus=np.full(n, mat.youngs_modulus),
         poisson_ratio=np.full(n, mat.poisson_ratio),
         material=np.full(n, MATERIALS[mat.kind].id, dtype=np.int32), muscle=muscle, fiber=fiber,
-        muscle_ratio=np.full(n, ratio), params=np.tile(params, (n, 1)), body=np.full(n, i, dtype=np.int32),
+        muscle_ratio=np.full(n, ratio), params=np.broadcast_to(params, (n, len(params))), body=np.full(n, i, dtype=np.int32),
         robot=np.full(n, body.robot, dtype=bool))
 
 
@@ -351,4 +354,4 @@ def _layer_particles(scene: Scene, i: int, body: BodySpec, others: list[dict[str
         raise SceneError(f"bodies[{i}].shape = {body.shape!r} is invalid: the layer holds no particle "
                          f"(no free space above the terrain at dx={scene.dx})")
     n = len(x)
-    return _fields(i, body, x, spacing ** 2 * row_height, np.zeros((n, 0)), np.tile([1.0, 0, 0], (n, 1)), 0.0)
+    return _fields(i, body, x, spacing ** 2 * row_height, np.zeros((n, 0)), np.broadcast_to([1.0, 0, 0], (n, 3)), 0.0)
