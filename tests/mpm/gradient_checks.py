@@ -20,16 +20,13 @@ import pytest
 
 from codesign_mpm import BodySpec, MaterialSpec, MuscleSpec, Scene, ShapeSpec, TerrainSpec, build_particles
 from codesign_mpm.engine import Simulator
-from test_environments import make_env, random_actions  # same folder: pytest puts it on sys.path
+from test_environments import NARROW, make_env, random_actions  # same folder: pytest puts it on sys.path
 
 
 COVERS = {"ground": None, "ice": None, "desert": "sand", "clay": "clay", "wetland": "mud", "snow": "snow",
           "shallow_water": "water", "ocean": "water"}
 T = 8  # frames: the cover has settled onto the terrain and carries the robot
 MAX_FRAMES, SEGMENT = 12, 64  # shared by both simulators of an environment, so they share compiled kernels
-SIZE = [0.6, 0.5, 0.5]
-"""The domain, narrower than make_env's 1 m: the robot (x from 0.15 to 0.35) keeps cover on every side,
-and each check runs on about half the cover particles and 60% of the grid."""
 MUSCLE_STEP = 1e-4
 FOOT_STEP = 1e-5  # relative, for the foot's Young's modulus and fibre direction
 """Steps where the central difference has converged and round-off has not yet set in. A foot's
@@ -52,7 +49,7 @@ def assert_matches(analytic: float, numeric: float, scale: float, what) -> None:
 
 
 def make_check_env(name: str, dtype: str = "float64", **overrides):
-    return make_env(name, dtype=dtype, **{"size": SIZE, **overrides})
+    return make_env(name, dtype=dtype, **{"size": NARROW, **overrides})
 
 
 def check_every_input(name: str, **overrides) -> None:

@@ -8,6 +8,9 @@ from codesign_mpm.environment.env import LocomotionEnv
 
 ENVIRONMENTS = ["ground", "ice", "desert", "snow", "clay", "wetland", "shallow_water", "ocean"]
 DX = 1 / 32
+NARROW = [0.6, 0.5, 0.5]
+"""A domain narrower than the presets' 1 m for what needs no room to travel: the robot (x from 0.15 to
+0.35) keeps cover on every side, on about half the cover particles and 60% of the grid."""
 
 
 def make_env(name: str, dtype: str = "float32", horizon: int = 50, **overrides) -> LocomotionEnv:
@@ -65,7 +68,7 @@ def test_fifty_control_steps_with_random_actions_stay_finite_and_move_the_robot(
 
 def sink_depth(name: str, frames: int = 60) -> float:
     """How far a robot (twice water's density) set on top of a deep (0.1) layer sinks, without acting."""
-    env = make_env(name, robot=RobotConfig(rest_on="cover", density=2e3),
+    env = make_env(name, size=NARROW, robot=RobotConfig(rest_on="cover", density=2e3),
                    cover=CoverConfig(**{**vars(PRESET_CONFIGS[name]().cover), "thickness": 0.1}))
     try:
         start = env.reset()[1]
@@ -79,7 +82,8 @@ def sink_depth(name: str, frames: int = 60) -> float:
 @pytest.mark.slow
 def test_a_robot_sinks_into_deep_snow_and_mud_more_than_into_packed_sand():
     sand, snow, mud = (sink_depth(name) for name in ("desert", "snow", "wetland"))
-    # measured (dx 1/32): sand 0.0020 (settling into contact), snow 0.012, mud 0.027
+    # measured (dx 1/32, NARROW): sand 0.0019 (settling into contact), snow 0.0116, mud 0.0267 (1 m wide: 0.0020,
+    # 0.012, 0.027)
     assert sand < 0.3 * DX
     assert snow > sand + 0.25 * DX and mud > snow + 0.25 * DX, (sand, snow, mud)
 
