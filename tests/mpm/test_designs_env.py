@@ -68,10 +68,12 @@ def test_each_animal_moves_with_its_muscles(animal, environment):
     try:
         k = {"caterpillar": 12}.get(animal, 4)
         assert env.action_dim == k and env.design_space.muscle.shape[1] == k
-        moved, still = displacement(env, 50, 0.3), displacement(env, 50, 0.0)
+        moved, still = displacement(env, 20, 0.3), displacement(env, 20, 0.0)
     finally:
         env.close()
-    assert np.linalg.norm(moved - still) > 1e-4, (moved, still)  # beyond settling under gravity (float32: ~1e-7)
+    # beyond settling under gravity (float32: ~1e-7); measured in 20 steps: the seal 2.8e-4 in the ocean and
+    # 4.6e-4 on the ground, the others 1.8e-3 to 6.3e-3
+    assert np.linalg.norm(moved - still) > 1e-4, (moved, still)
 
 
 def test_the_caterpillar_turns_by_its_sides_and_a_mirrored_gait_turns_it_the_other_way():
