@@ -295,8 +295,8 @@ def _fields(i: int, body: BodySpec, x: np.ndarray, volume: float, muscle: np.nda
         density=np.full(n, mat.density), youngs_modulus=np.full(n, mat.youngs_modulus),
         poisson_ratio=np.full(n, mat.poisson_ratio),
         material=np.full(n, MATERIALS[mat.kind].id, dtype=np.int32), muscle=muscle, fiber=fiber,
-        muscle_ratio=np.full(n, ratio), params=np.broadcast_to(params, (n, len(params))), body=np.full(n, i, dtype=np.int32),
-        robot=np.full(n, body.robot, dtype=bool))
+        muscle_ratio=np.full(n, ratio), params=np.broadcast_to(params, (n, len(params))),
+        body=np.full(n, i, dtype=np.int32), robot=np.full(n, body.robot, dtype=bool))
 
 
 def _inside(points: np.ndarray, bodies: list[dict[str, np.ndarray]]) -> np.ndarray:
