@@ -48,6 +48,17 @@ def test_the_cover_is_laid_around_the_robot_without_overlap(name):
         assert cover.x[:, 1].max() > robot.x[:, 1].max()
 
 
+def test_the_robot_and_the_cover_are_the_environments_particles_without_a_copy():
+    """A terrain may hold millions of particles: the robot's and the cover's are views of one sampling,
+    robot first, and the cover has no muscles."""
+    env = make_env("desert")
+    robot, cover, both = env.base_particles, env.cover_particles, env.particles
+    assert np.shares_memory(robot.x, both.x) and np.shares_memory(cover.x, both.x)
+    np.testing.assert_array_equal(np.concatenate([robot.x, cover.x]), both.x)
+    assert cover.n_actuators == 0 and both.n_actuators == robot.n_actuators > 0
+    assert not both.muscle[robot.n:].any() and both.robot[:robot.n].all() and not both.robot[robot.n:].any()
+
+
 def random_actions(env, steps: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).uniform(-0.3, 0.3, size=(steps, env.action_dim))
 
