@@ -30,7 +30,7 @@ from codesign_mpm.engine import Simulator
 from codesign_mpm.environment.episode import Episode, run_episode
 from codesign_mpm.scene.integrity import MIN_THICKNESS_CELLS, IntegrityWatch, resolved_body, thinnest_cells
 from codesign_mpm.environment.observations import Observer
-from codesign_mpm.scene.sampling import Particles, build_particles, layer_ground
+from codesign_mpm.scene.sampling import Particles, build_particles, join_particles, layer_ground
 from codesign_mpm.scene.spec import BodySpec, MaterialSpec, MuscleSpec, Scene, SceneError, ShapeSpec, TerrainSpec
 from codesign_mpm.environment.settle import REST_SPEED, ROBOT_REST_SPEED, Relaxed, relax_scene, settled_state
 from codesign_mpm.environment.tasks import TASKS, RobotFrame, Task, TaskContext
@@ -153,15 +153,8 @@ def _subset(particles: Particles, keep: np.ndarray | slice) -> Particles:
 
 
 def _concat(first: Particles, second: Particles) -> Particles:
-    """Particles of both sets, in order; the cover has no actuators, so its muscle rows are zero.
-    Those rows are left as `np.zeros` allocates them, untouched: a terrain of millions of particles
-    costs nothing here for the muscles it does not have."""
-    if second.n == 0:
-        return first
-    muscle = np.zeros((first.n + second.n, first.n_actuators))
-    muscle[:first.n] = first.muscle
-    return Particles(muscle=muscle, **{name: np.concatenate([getattr(first, name), getattr(second, name)])
-                                       for name in Particles.__dataclass_fields__ if name != "muscle"})
+    """Particles of both sets, in order; the second (the cover) has no muscle columns."""
+    return first if second.n == 0 else join_particles([first, second])
 
 
 def _without_muscles(particles: Particles) -> Particles:

@@ -172,18 +172,20 @@ def build_particles(scene: Scene) -> Particles:
     for i, body in enumerate(scene.bodies):
         if body.shape.kind == "layer":
             by_body[i] = _layer_particles(scene, i, body, list(by_body.values()))
-    parts = [by_body[i] for i in range(len(scene.bodies))]
-    # each body's muscles take their own block of columns; the rest stays as np.zeros allocates it,
-    # untouched, so a terrain of millions of particles costs nothing for the muscles it lacks
-    muscle = np.zeros((sum(len(p["x"]) for p in parts), sum(p["muscle"].shape[1] for p in parts)))
+    return join_particles([Particles(**by_body[i]) for i in range(len(scene.bodies))])
+
+
+def join_particles(parts: list[Particles]) -> Particles:
+    """The particles of every part, in order, in new arrays; each part's muscles take their own block
+    of columns. The rest of the muscle matrix stays as `np.zeros` allocates it, untouched, so a
+    terrain of millions of particles costs nothing for the muscles it lacks."""
+    muscle = np.zeros((sum(p.n for p in parts), sum(p.n_actuators for p in parts)))
     row = column = 0
     for p in parts:
-        own = p.pop("muscle")
-        n, k = own.shape
-        muscle[row:row + n, column:column + k] = own
-        row, column = row + n, column + k
-    cat = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-    return Particles(muscle=muscle, **cat)
+        muscle[row:row + p.n, column:column + p.n_actuators] = p.muscle
+        row, column = row + p.n, column + p.n_actuators
+    return Particles(muscle=muscle, **{name: np.concatenate([getattr(p, name) for p in parts])
+                                       for name in Particles.__dataclass_fields__ if name != "muscle"})
 
 
 def _body_particles(scene: Scene, i: int, body: BodySpec) -> dict[str, np.ndarray]:
@@ -289,7 +291,7 @@ def _fields(i: int, body: BodySpec, x: np.ndarray, volume: float, muscle: np.nda
             ratio: float) -> dict[str, np.ndarray]:
     n, mat = len(x), body.material
     params = spec_params(mat)
-    # rows alike in every particle are read-only views; build_particles' concatenation writes them once
+    # rows alike in every particle are read-only views; join_particles writes them once
     return dict(
         x=x, v=np.broadcast_to(np.asarray(body.velocity, dtype=float), (n, 3)), volume=np.full(n, volume),
         density=np.full(n, mat.density), youngs_modulus=np.full(n, mat.youngs_modulus),
