@@ -8,6 +8,7 @@ import sys
 import weakref
 
 import taichi as ti
+from taichi._snode.snode_tree import SNodeTree
 from taichi.lang import impl
 
 CACHE_LIMIT_BYTES = 1024**3  # Taichi takes a C int: under 2 GiB
@@ -21,6 +22,7 @@ _current: tuple[str, str] | None = None
 generation = 0  # bumped on every re-initialisation; simulators built before it are dead
 _ndarrays: "weakref.WeakSet[ti.Ndarray]" = weakref.WeakSet()  # this program's live ndarrays
 _outlived: list = []  # ndarrays of ended programs, never to be collected (see `ndarray`)
+_trees: "weakref.WeakSet[SNodeTree]" = weakref.WeakSet()  # this program's live SNode trees (see `fields_tree`)
 
 
 def ndarray(dtype, shape: tuple[int, ...]) -> "ti.Ndarray":
@@ -36,10 +38,26 @@ def ndarray(dtype, shape: tuple[int, ...]) -> "ti.Ndarray":
     return array
 
 
+def fields_tree(builder: ti.FieldsBuilder) -> SNodeTree:
+    """`builder.finalize()`, the tree let go of its program when the program ends.
+
+    Taichi's SNode tree holds its program, so a tree that outlives `ti.reset()` keeps the ended
+    program alive until the tree is collected; the program's teardown then runs inside the next
+    program and frees memory that program's ndarrays hold (Taichi 1.7: a segmentation fault in a
+    later kernel)."""
+    tree = builder.finalize()
+    _trees.add(tree)
+    return tree
+
+
 def _end_program() -> None:
-    """`ti.reset()`, keeping this program's surviving ndarrays from ever being collected."""
+    """`ti.reset()`, the program torn down now: its surviving ndarrays are never collected and its
+    surviving SNode trees let go of it (their `destroy()` is then a no-op)."""
     _outlived.extend(_ndarrays)
     _ndarrays.clear()
+    for tree in _trees:
+        tree.prog = None
+    _trees.clear()
     ti.reset()
 
 

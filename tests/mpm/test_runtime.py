@@ -1,7 +1,5 @@
 """codesign_mpm.runtime: Taichi set up once, its frontend's source excerpts formatted once per place and
 each function's source read once."""
-import gc
-import weakref
 
 import pytest
 import taichi as ti
@@ -76,28 +74,49 @@ def test_a_functions_source_is_read_once_however_many_kernels_inline_it():
     assert field.to_numpy().tolist() == [2.0, 4.0, 3.0]
     runtime.reset()
 
-def test_ndarrays_outliving_their_program_are_never_collected():
-    """Taichi frees a collected ndarray by its address in the *current* program, so an ndarray of an
-    ended program (a simulator collected after a dtype switch, or after a module's fresh program) can
-    free a live ndarray of the new program that took the same address: memory reused under a live
-    simulator, seen as a segfault in a backward pass. Such ndarrays must never be collected."""
-    runtime.init_taichi("cpu", "float32")
-    shape = (64,)
-    old = [runtime.ndarray(ti.f32, shape) for _ in range(2000)]
-    watch = weakref.ref(old[0])
-    runtime.reset()  # a new program
-    runtime.init_taichi("cpu", "float32")
-    live = [runtime.ndarray(ti.f32, shape) for _ in range(2000)]
-    for array in live:
-        array.fill(1.0)
-    del old
-    gc.collect()
-    assert watch() is not None
-    later = [runtime.ndarray(ti.f32, shape) for _ in range(2000)]  # would take freed memory
-    for array in later:
-        array.fill(7.0)
-    assert all((array.to_numpy() == 1.0).all() for array in live)  # without the guard: 1-4 of 2000 not
-    runtime.reset()
+OUTLIVING_THEIR_PROGRAM = """
+import gc, weakref
+import taichi as ti
+from codesign_mpm import runtime
+
+runtime.init_taichi("cpu", "float32")
+builder = ti.FieldsBuilder()
+field = ti.field(ti.f32)
+builder.dense(ti.i, 1000).place(field)
+tree = runtime.fields_tree(builder)
+old = [runtime.ndarray(ti.f32, (64,)) for _ in range(2000)]
+watch = weakref.ref(old[0])
+runtime.reset()  # a new program
+runtime.init_taichi("cpu", "float32")
+live = [runtime.ndarray(ti.f32, (64,)) for _ in range(2000)]
+for array in live:
+    array.fill(1.0)
+del old, tree, builder, field
+gc.collect()
+later = [runtime.ndarray(ti.f32, (64,)) for _ in range(2000)]  # would take freed memory
+for array in later:
+    array.fill(7.0)
+print(watch() is not None, sum(not (array.to_numpy() == 1.0).all() for array in live))
+"""
+
+
+def test_ndarrays_and_fields_outliving_their_program_leave_the_next_one_intact():
+    """Two ways an ended Taichi program (a simulator collected after a dtype switch, after a test
+    module's fresh program, after a sweep's recycled one) could free a live program's memory:
+    collecting an ndarray asks the *current* program to free it by its address, which a live
+    ndarray may have taken (1-4 of 2000 overwritten); and an SNode tree holds its program, whose
+    teardown, when the tree is collected in the next program, frees memory that program uses (a
+    segmentation fault in the next kernel). Such ndarrays are never collected and such trees let
+    go of their program at its end. In a process of its own: the failure is a crash."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", OUTLIVING_THEIR_PROGRAM], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, f"exit {done.returncode}: {done.stderr[-2000:]}"
+    kept, overwritten = done.stdout.splitlines()[-1].split()
+    assert kept == "True", "an ndarray of the ended program was collected"
+    assert overwritten == "0", f"{overwritten} of 2000 live ndarrays overwritten"
 
 
 def test_arch_gpu_without_a_gpu_runs_on_the_cpu_with_a_warning_instead_of_crashing():

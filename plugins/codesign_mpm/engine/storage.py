@@ -191,7 +191,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
             self.u = vec(3, (slots, n), True)  # each particle's tangential spring: its displacement from its anchor
             self.contact_stiffness = scalar(())
             self.contact_damping = scalar(())
-        self._tree = builder.finalize()
+        self._tree = runtime.fields_tree(builder)
 
     @ti.kernel
     def _forward_substep(self, s: ti.i32, so: ti.i32, t: ti.i32, n: ti.i32, j: ti.i32, full_grid: ti.template()):
