@@ -1,5 +1,6 @@
-"""codesign_mpm.runtime: Taichi set up once, its frontend's source excerpts formatted once per place and
-each function's source read once."""
+"""codesign_mpm.runtime: Taichi set up once, its frontend's source excerpts formatted once per place,
+each function's source read once, kernels launched again from a plan, and ended programs kept from
+freeing a live program's memory."""
 
 import pytest
 import taichi as ti
@@ -73,6 +74,68 @@ def test_a_functions_source_is_read_once_however_many_kernels_inline_it():
     redefined()
     assert field.to_numpy().tolist() == [2.0, 4.0, 3.0]
     runtime.reset()
+
+@ti.data_oriented
+class _Counter:
+    """A data-oriented object with a kernel of scalar arguments and one with a template argument."""
+
+    def __init__(self):
+        self.values = ti.field(ti.f32, shape=4)
+
+    @ti.kernel
+    def add(self, i: ti.i32, amount: ti.f32):
+        self.values[i] += amount
+
+    @ti.kernel
+    def add_signed(self, i: ti.i32, negative: ti.template()):
+        self.values[i] += -1.0 if ti.static(negative) else 1.0
+
+
+def _taichi_launches(monkeypatch) -> list:
+    """Count the launches that take Taichi's own path (a spy on `Kernel.launch_kernel`)."""
+    calls = []
+    original = kernel_impl.Kernel.launch_kernel
+    monkeypatch.setattr(kernel_impl.Kernel, "launch_kernel", lambda self, *a: calls.append(1) or original(self, *a))
+    return calls
+
+
+def test_a_kernel_is_launched_again_from_its_plan_with_the_same_results(monkeypatch):
+    """After its first launch, a kernel of scalar arguments skips Taichi's per-call path; each
+    object and each template value keeps its own compiled kernel, and a scalar of the wrong type is
+    still refused with Taichi's error."""
+    runtime.init_taichi("cpu", "float32")
+    taichi_path = _taichi_launches(monkeypatch)
+    first, second = _Counter(), _Counter()
+    for _ in range(3):
+        first.add(1, 0.5)
+        second.add(2, 2)
+        first.add_signed(0, True)
+        second.add_signed(0, False)
+    assert len(taichi_path) == 4  # each (kernel, object, template value) once; the other 8 from plans
+    assert first.values.to_numpy().tolist() == [-3.0, 1.5, 0.0, 0.0]
+    assert second.values.to_numpy().tolist() == [3.0, 0.0, 6.0, 0.0]
+    with pytest.raises(ti.TaichiRuntimeTypeError, match="i32"):
+        first.add(1.5, 1.0)
+    assert first.values.to_numpy().tolist() == [-3.0, 1.5, 0.0, 0.0]
+    runtime.reset()
+
+
+def test_a_plan_is_dropped_with_the_compiled_kernel_it_launches(monkeypatch):
+    """Destroying an SNode tree makes Taichi drop every compiled kernel (they name its fields); a
+    plan of the dropped kernel is not used: the next launch compiles and launches through Taichi."""
+    runtime.init_taichi("cpu", "float32")
+    counter = _Counter()
+    counter.add(0, 1.0)
+    builder = ti.FieldsBuilder()
+    builder.dense(ti.i, 2).place(ti.field(ti.f32))
+    runtime.fields_tree(builder).destroy()
+    taichi_path = _taichi_launches(monkeypatch)
+    counter.add(0, 1.0)
+    counter.add(0, 1.0)
+    assert len(taichi_path) == 1
+    assert counter.values[0] == 3.0
+    runtime.reset()
+
 
 OUTLIVING_THEIR_PROGRAM = """
 import gc, weakref
