@@ -91,6 +91,56 @@ class _Counter:
         self.values[i] += -1.0 if ti.static(negative) else 1.0
 
 
+def _probe_class() -> type:
+    """A fresh class with each kind of attribute a storage has: a field, a plain value, a class
+    value, a method, a property, its own kernel and an inherited one."""
+
+    class Base:
+        @ti.kernel
+        def inherited(self, i: ti.i32):
+            self.values[i] = 1.0
+
+    class Probe(Base):
+        scale = 2.0
+
+        def __init__(self):
+            self.values = ti.field(ti.f32, shape=2)
+            self.plain = [1, 2]
+
+        @ti.kernel
+        def own(self, i: ti.i32):
+            self.values[i] = 2.0
+
+        def method(self) -> float:
+            return self.scale
+
+        @property
+        def doubled(self) -> float:
+            return 2 * self.scale
+
+    return Probe
+
+
+def test_a_data_oriented_objects_attributes_read_as_through_taichis_route():
+    """`runtime.data_oriented` sends only kernel names through Taichi's attribute route; every other
+    attribute reads as Taichi's route reads it, and the kernels run bound to their object."""
+    runtime.init_taichi("cpu", "float32")
+    fast, slow = runtime.data_oriented(_probe_class())(), ti.data_oriented(_probe_class())()
+    for name in ("values", "plain", "scale", "method", "doubled", "inherited", "own"):
+        ours, taichis = getattr(fast, name), getattr(slow, name)
+        assert type(ours) is type(taichis), name
+        if name in ("inherited", "own"):
+            assert ours._kernel_owner is fast and taichis._kernel_owner is slow
+        elif name == "method":
+            assert ours() == taichis() and ours.__self__ is fast
+        elif name != "values":
+            assert ours == taichis, name
+    fast.own(0)
+    fast.inherited(1)
+    assert fast.values.to_numpy().tolist() == [2.0, 1.0]
+    runtime.reset()
+
+
 def _taichi_launches(monkeypatch) -> list:
     """Count the launches that take Taichi's own path (a spy on `Kernel.launch_kernel`)."""
     calls = []

@@ -60,7 +60,7 @@ class Layout:
     contact_memory: bool = False  # the surface contact as springs whose friction remembers (terrain.contact: spring)
 
 
-@ti.data_oriented
+@runtime.data_oriented
 class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
     """Taichi fields and kernels for one layout.
 
