@@ -75,6 +75,7 @@ def test_a_functions_source_is_read_once_however_many_kernels_inline_it():
     assert field.to_numpy().tolist() == [2.0, 4.0, 3.0]
     runtime.reset()
 
+
 @ti.data_oriented
 class _Counter:
     """A data-oriented object with a kernel of scalar arguments and one with a template argument."""
