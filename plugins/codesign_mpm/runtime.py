@@ -223,9 +223,7 @@ def _launch_again_directly() -> None:
 
     kernel_class = getattr(kernel_impl, "Kernel", None)
     original = getattr(kernel_class, "__call__", None)
-    if original is None or getattr(original, "plans_launches", False):
-        return
-    if not all(hasattr(kernel_class, name) for name in ("ensure_compiled", "launch_kernel")):
+    if original is None or getattr(original, "plans_launches", False) or not hasattr(kernel_class, "ensure_compiled"):
         return
     floats, ints = primitive_types.real_type_ids, primitive_types.integer_type_ids
     # matched by exact type: isinstance would ask a data-oriented object for its __class__ through

@@ -310,10 +310,11 @@ def _inside(points: np.ndarray, bodies: list[dict[str, np.ndarray]]) -> np.ndarr
     inside = np.zeros(len(points), dtype=bool)
     for body in bodies:
         half = 0.5 * np.cbrt(body["volume"])
+        reach = half.max()
         # only points in the body's box ask the tree: a layer spans the domain, a body a corner of it
-        box = np.flatnonzero(np.all((points >= body["x"].min(axis=0) - half.max())
-                                    & (points <= body["x"].max(axis=0) + half.max()), axis=1))
-        distance, nearest = cKDTree(body["x"]).query(points[box], p=np.inf, distance_upper_bound=half.max())
+        box = np.flatnonzero(np.all((points >= body["x"].min(axis=0) - reach)
+                                    & (points <= body["x"].max(axis=0) + reach), axis=1))
+        distance, nearest = cKDTree(body["x"]).query(points[box], p=np.inf, distance_upper_bound=reach)
         near = np.isfinite(distance)
         inside[box[near]] |= distance[near] < half[nearest[near]]
     return inside
