@@ -335,13 +335,40 @@ def on_gpu() -> bool:
     return impl.current_cfg().arch not in (ti.x64, ti.arm64)
 
 
+def _forced(variable: str) -> bool | None:
+    """A switch the environment variable forces (1 or 0; benchmarks and tests compare both
+    settings on one machine), or None where it is unset."""
+    forced = os.environ.get(variable)
+    if forced not in (None, "", "0", "1"):
+        raise ValueError(f"{variable} must be 0 or 1, got {forced!r}")
+    return forced == "1" if forced else None
+
+
 def fold_reductions() -> bool:
     """Whether reductions into one value fold per thread first (FOLD_THREADS): on a GPU, or where
     the environment variable CODESIGN_FOLD_REDUCTIONS says 1 or 0 (tests compare the two on a CPU)."""
-    forced = os.environ.get("CODESIGN_FOLD_REDUCTIONS")
-    if forced not in (None, "", "0", "1"):
-        raise ValueError(f"CODESIGN_FOLD_REDUCTIONS must be 0 or 1, got {forced!r}")
-    return forced == "1" if forced else on_gpu()
+    forced = _forced("CODESIGN_FOLD_REDUCTIONS")
+    return on_gpu() if forced is None else forced
+
+
+SERIAL_PARTICLES = 1024
+"""A parallel loop on a CPU costs about 30 us to hand its work to Taichi's threads and wait for
+them (2 cores, 2026-11-29: 27 to 33 us for a loop of 1 to 4,096 trivial iterations, against 5 us
+run serially), and a substep runs about seven such loops: more than its work on a thousand
+particles. A storage's loops therefore run on the launching thread where the work the other
+threads would take, capacity x (threads - 1) / threads particles, is at most this many."""
+
+
+def serial_loops(capacity: int) -> bool:
+    """Whether the kernels of a storage of `capacity` particles run their loops serially: on a CPU,
+    where the other threads' share of the work is small (SERIAL_PARTICLES), or where the
+    environment variable CODESIGN_SERIAL_LOOPS says 1 or 0. Each particle's and node's arithmetic
+    is the same either way (p2g's private grids keep their chunks), so the results are too."""
+    forced = _forced("CODESIGN_SERIAL_LOOPS")
+    if forced is not None:
+        return forced
+    threads = impl.current_cfg().cpu_max_num_threads
+    return not on_gpu() and capacity * (threads - 1) <= SERIAL_PARTICLES * threads
 
 
 def reset() -> None:

@@ -232,41 +232,71 @@ def test_the_private_scatter_equals_the_atomic_one(sim, actions, weights, monkey
         np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12 * np.abs(a).max(), err_msg=name)
 
 
+def _outcome_with(variable, value, sim, actions, weights, wx, monkeypatch):
+    """A simulator of `sim`'s scene built with the environment `variable` at `value`: its rollout,
+    gradients, the state after two frames of `step` (the one-launch forward substep), the
+    particles' box, the guard's maxima, and what the guard reports for two broken particles."""
+    monkeypatch.setenv(variable, value)
+    other = Simulator(sim.scene, sim.particles, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=64)
+    try:
+        final = other.rollout(actions)
+        grads = other.backward(com_x=weights["com_x"], com_v=weights["com_v"], x=wx)
+        other.step(actions[0], frames=2)
+        other.k._bounds(0, other.n)
+        box = [other.k.lo[d][None] for d in range(3)] + [other.k.hi[d][None] for d in range(3)]
+        guard = (other.k.max_speed[None], other.k.max_wave[None])
+        state = other.particles_state()
+        broken = [np.ascontiguousarray(a) for a in state]
+        broken[0][[7, 9]] = np.nan
+        other.k._load_state(0, other.n, *broken)
+        other.k._check(0, other.n)
+        reported = (other.k.n_bad[None], other.k.first_bad[None])
+        return other.layout, (final, grads, state, box, guard, reported)
+    finally:
+        other.close()
+
+
+def _assert_same(a, b, gradient_rtol=0.0):
+    """States, probes, box and guard bit for bit; gradients within `gradient_rtol` of each array's
+    largest magnitude."""
+    (final_a, grads_a, state_a, box_a, guard_a, reported_a), (final_b, grads_b, state_b, box_b, guard_b, reported_b) = a, b
+    assert box_a == box_b and guard_a == guard_b
+    assert reported_a == reported_b == (2, 7)
+    for name in ("x", "v", "C", "F"):
+        np.testing.assert_array_equal(getattr(final_a.final, name), getattr(final_b.final, name), err_msg=name)
+    np.testing.assert_array_equal(final_a.com_x, final_b.com_x)
+    np.testing.assert_array_equal(final_a.com_v, final_b.com_v)
+    for x, y in zip(state_a, state_b):
+        np.testing.assert_array_equal(x, y)
+    for name in ("actions", "youngs_modulus", "muscle", "volume", "x0", "v0"):
+        x, y = getattr(grads_a, name), getattr(grads_b, name)
+        np.testing.assert_allclose(x, y, rtol=0, atol=gradient_rtol * np.abs(y).max(), err_msg=name)
+
+
 def test_folded_reductions_give_the_same_box_guard_states_and_gradients(sim, actions, weights, monkeypatch):
     """The GPU's reductions (each of runtime.FOLD_THREADS threads folds its particles, then one
     atomic) find the same particle box and guard values as one atomic per particle: min, max and
     counts do not depend on their order, so states and gradients are bit for bit the same, and the
     guard counts broken particles and names the first alike."""
     wx = np.random.default_rng(3).normal(size=(sim.n, 3)) / sim.n
-    out = {}
-    for fold in ("0", "1"):
-        monkeypatch.setenv("CODESIGN_FOLD_REDUCTIONS", fold)
-        other = Simulator(sim.scene, sim.particles, requires_grad=True, max_frames=MAX_FRAMES, checkpoint_every=64)
-        assert other.layout.folded == (fold == "1")
-        try:
-            final = other.rollout(actions)
-            grads = other.backward(com_x=weights["com_x"], com_v=weights["com_v"], x=wx)
-            other.step(actions[0], frames=2)  # the one-launch forward substep
-            other.k._bounds(0, other.n)
-            box = [other.k.lo[d][None] for d in range(3)] + [other.k.hi[d][None] for d in range(3)]
-            guard = (other.k.max_speed[None], other.k.max_wave[None])
-            state = other.particles_state()
-            broken = [np.ascontiguousarray(a) for a in state]
-            broken[0][[7, 9]] = np.nan
-            other.k._load_state(0, other.n, *broken)
-            other.k._check(0, other.n)
-            assert (other.k.n_bad[None], other.k.first_bad[None]) == (2, 7)
-            out[fold] = (final, grads, state, box, guard)
-        finally:
-            other.close()
-    (final0, grads0, state0, box0, guard0), (final1, grads1, state1, box1, guard1) = out["0"], out["1"]
-    assert box1 == box0 and guard1 == guard0
-    for name in ("x", "v", "C", "F"):
-        np.testing.assert_array_equal(getattr(final1.final, name), getattr(final0.final, name), err_msg=name)
-    for a, b in zip(state1, state0):
-        np.testing.assert_array_equal(a, b)
-    for name in ("actions", "youngs_modulus", "muscle", "volume", "x0", "v0"):
-        np.testing.assert_array_equal(getattr(grads1, name), getattr(grads0, name), err_msg=name)
+    unfolded_layout, unfolded = _outcome_with("CODESIGN_FOLD_REDUCTIONS", "0", sim, actions, weights, wx, monkeypatch)
+    folded_layout, folded = _outcome_with("CODESIGN_FOLD_REDUCTIONS", "1", sim, actions, weights, wx, monkeypatch)
+    assert (unfolded_layout.folded, folded_layout.folded) == (False, True)
+    _assert_same(folded, unfolded)
+
+
+def test_serial_loops_give_the_parallel_loops_results_bit_for_bit(sim, actions, weights, monkeypatch):
+    """A storage whose loops run on the launching thread (runtime.serial_loops: a small scene on a
+    CPU) does each particle's and node's arithmetic as the thread pool does, p2g's private grids
+    keeping their chunks: the same states, probes and guard, bit for bit. The gradients agree to
+    round-off: a serial loop is compiled into its kernel's function, where fast-math may fuse a
+    multiply-add the separate function of a parallel loop leaves apart (about 1e-14 here)."""
+    wx = np.random.default_rng(4).normal(size=(sim.n, 3)) / sim.n
+    parallel_layout, parallel = _outcome_with("CODESIGN_SERIAL_LOOPS", "0", sim, actions, weights, wx, monkeypatch)
+    serial_layout, serial = _outcome_with("CODESIGN_SERIAL_LOOPS", "1", sim, actions, weights, wx, monkeypatch)
+    assert (parallel_layout.serial, serial_layout.serial) == (False, True)
+    assert serial_layout.scatter_copies == parallel_layout.scatter_copies > 1, "the private grids' chunks are compared"
+    _assert_same(serial, parallel, gradient_rtol=1e-12)
 
 
 def test_torch_bridge_passes_gradcheck(sim):

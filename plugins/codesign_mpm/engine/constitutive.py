@@ -65,6 +65,7 @@ class _Constitutive:
         """Reverse of `_constitutive_update` for an elastic model whose module writes its stress's adjoint
         by hand (`stress_adjoint`; neo-Hookean, the robots' default), at the trial F = (I + dt C) F_s,
         the muscle's included."""
+        ti.loop_config(serialize=self.serial)
         for p in range(start, end):
             F = self._trial(p, s)
             tau_bar = self.tau.grad[p]
@@ -130,6 +131,7 @@ class _Constitutive:
         """A Hencky model's map (`_spectral`) from `strain` to `spectral`, in a kernel of its own so
         that Taichi's reverse mode differentiates it alone: the eigenframe algebra around it took
         over a minute to compile in reverse mode, the map well under a second."""
+        ti.loop_config(serialize=self.serial)
         for p in range(start, end):
             mu, la = self._lame(p)
             g, g_slope, k, k_slope = self._spectral(model, p, s, so, self.strain[p], mu, la, True)
@@ -145,6 +147,7 @@ class _Constitutive:
 
         F_new = F + Q0 M1 P and tau = Q0 M2 Q0^T: with G = Q0^T dL/dF_new, M1's gradient is G P^T,
         P's gets M1 G, and M2's is Q0^T dL/dtau Q0."""
+        ti.loop_config(serialize=self.serial)
         for p in range(start, end):
             F = self._trial(p, s)
             mu, la = self._lame(p)
@@ -170,6 +173,7 @@ class _Constitutive:
         """Last part of the hand-written reverse (after `_spectral_map.grad`): through A = P P^T and
         a = max(diag A, J_MIN^2) to P, then to the trial F = (I + dt C) F_s and on to F_s and C
         (mud's viscous stress J eta (C + C^T) included)."""
+        ti.loop_config(serialize=self.serial)
         for p in range(start, end):
             C, F = self.C[s, p], self._trial(p, s)
             Q0, P, A, a = self._eigenframe(p, F)
@@ -226,6 +230,7 @@ class _Constitutive:
         """Kirchhoff stress that the next substep applies to particles [start, end) of one model
         (constitutive at the trial F, plus the muscle at action row t); forward only. State a
         plastic model writes (snow's J_p) goes to the `scratch` slot."""
+        ti.loop_config(serialize=self.serial)
         for p in range(start, end):
             if ti.static(material(model).kind == "hencky"):
                 self.frame[p] = self._frame(s, p)
@@ -250,6 +255,7 @@ class _Constitutive:
         (muscle included, at action row t) of the particles [start, end) of one model, in their own
         kernel ahead of p2g (one small kernel per model compiles far faster than all of them fused
         into the 27-node scatter). `j`: the substep within the control step."""
+        ti.loop_config(serialize=self.serial)
         for p in range(start, end):
             if ti.static(self.batched):
                 if self._active(p, j):
@@ -300,6 +306,7 @@ class _Constitutive:
         """Action row t's gradient from the muscles of particles [start, end): sum_p drive_bar_p m_p,
         added up in chunks of DRIVE_CHUNK particles, one atomic add per chunk (an atomic add per
         particle onto one row serialises every thread on it)."""
+        ti.loop_config(serialize=self.serial)
         for c in range((end - start + DRIVE_CHUNK - 1) // DRIVE_CHUNK):
             total = ti.Vector.zero(float, ti.static(self.act.n))
             for p in range(start + c * DRIVE_CHUNK, ti.min(end, start + (c + 1) * DRIVE_CHUNK)):
@@ -311,6 +318,7 @@ class _Constitutive:
         """Add the work the muscles did in substep s -> so: the force their stress put on the grid
         nodes, f_i = -sum_p V_p tau_p (4 / dx^2) (x_i - x_p) w_ip, times the nodes' new velocities,
         which is -dt sum_p V_p tau_p : C'_p with C' the velocity gradient g2p gathered (forward only)."""
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             tau = self._muscle_stress(p, self._trial(p, s), t)
             self.work[None] += -self._dt(p) * self.vol[p] * (tau * self.C[so, p]).sum()

@@ -99,6 +99,7 @@ class _Contact:
     @ti.kernel
     def _contact_flags(self, s: ti.i32, n: ti.i32):
         """Which particles take part at slot s, as p2g found (for a reverse pass that loads the grid)."""
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             self.in_contact[p] = self._takes_part(p, s)
 
@@ -120,6 +121,7 @@ class _Contact:
     def _contact_impulse(self, s: ti.i32, n: ti.i32):
         """The impulse of each particle taking part, from the updated grid velocity (grid_v_out) at
         its position in slot s, into `impulse`."""
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             self._contact_impulse_of(p, s)
 
@@ -142,6 +144,7 @@ class _Contact:
         """The spring contact's impulse of each particle taking part (see `SPRING`), from the updated
         grid velocity at its position in slot s, into `impulse`; its tangential spring from slot s
         into slot so (zero where it takes no part or the contact carries no load)."""
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             self._spring_impulse_of(p, s, so)
 
@@ -178,6 +181,7 @@ class _Contact:
     @ti.kernel
     def _contact_scatter(self, s: ti.i32, n: ti.i32, sign: float):
         """Add sign times each impulse to its nodes' velocities (w j / M_i); sign -1 takes it back."""
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             self._contact_scatter_of(p, s, sign)
 
@@ -193,5 +197,6 @@ class _Contact:
     @ti.kernel
     def _clear_impulse_grad(self, n: ti.i32):
         """Zero the impulses' gradient, which the scatter's adjoint adds to."""
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             self.impulse.grad[p] = ti.Vector.zero(float, 3)

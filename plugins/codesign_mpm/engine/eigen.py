@@ -106,6 +106,7 @@ class _Eigen:
         Their derivative is taken by one Jacobi sweep inside `_plastic`: the whole iteration
         differentiated in reverse mode is far too slow for Taichi to compile.
         """
+        ti.loop_config(serialize=self.serial)
         for p in range(start, end):
             self.frame[p] = self._frame(s, p)
 

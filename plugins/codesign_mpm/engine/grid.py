@@ -33,6 +33,7 @@ class _Grid:
 
     @ti.func
     def _clear_grid_loop(self):
+        ti.loop_config(serialize=self.serial)
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             I = self._node(b, i, j, k)
@@ -52,6 +53,7 @@ class _Grid:
 
     @ti.func
     def _sum_copies_loop(self, adjoint: ti.template()):
+        ti.loop_config(serialize=self.serial)
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             I = self._node(b, i, j, k)
@@ -85,6 +87,7 @@ class _Grid:
             box[k, d] = lo[d]
             box[k, 3 + d] = lo[d] + extent[d]
         box[k, 6] = ti.cast(fits, ti.i32)
+        ti.loop_config(serialize=self.serial)
         for b, i, j, l in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             if fits:
@@ -110,6 +113,7 @@ class _Grid:
         """The grid momentum and mass `_store_grid` kept as record k (after `_load_box`)."""
         lo = ti.Vector([self.lo[0][None], self.lo[1][None], self.lo[2][None]])
         extent = ti.Vector([self.hi[0][None], self.hi[1][None], self.hi[2][None]]) - lo
+        ti.loop_config(serialize=self.serial)
         for b, i, j, l in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             I = self._node(b, i, j, l)
@@ -123,6 +127,7 @@ class _Grid:
 
     @ti.kernel
     def _clear_grid_grad(self):
+        ti.loop_config(serialize=self.serial)
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             I = self._node(b, i, j, k)
@@ -137,6 +142,7 @@ class _Grid:
 
     @ti.kernel
     def _grid_op(self):
+        ti.loop_config(serialize=self.serial)
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             self._grid_op_at(b, i, j, k)

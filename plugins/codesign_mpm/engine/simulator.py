@@ -145,8 +145,9 @@ class Simulator:
         self.segment = checkpoint_every or max(1, math.ceil(math.sqrt(max_frames * self.timestep.substeps / 2)))
         self.body_names = [b.name for b in scene.bodies]
         models = tuple(sorted(set(int(m) for m in particles.material)))
+        allocated = -(-max(particles.n, capacity or 0) // CAPACITY_STEP) * CAPACITY_STEP
         self.layout = self._layout(Layout(
-            capacity=-(-max(particles.n, capacity or 0) // CAPACITY_STEP) * CAPACITY_STEP,
+            capacity=allocated,
             n_actuators=particles.n_actuators,
             slots=self.segment + 1 if requires_grad else 2,
             rows=max_frames + 1,
@@ -158,6 +159,7 @@ class Simulator:
             boundary_cells=scene.boundary_cells,
             requires_grad=requires_grad,
             scatter_copies=runtime.scatter_copies(), folded=runtime.fold_reductions(),
+            serial=runtime.serial_loops(allocated),
             has_flip=(scene.flip > 0 or scene.pic_time is not None) and any(m in flip_models() for m in models),
             surface_contact=scene.terrain.kind != "none" and scene.terrain.contact in ("surface", "spring"),
             contact_memory=scene.terrain.kind != "none" and scene.terrain.contact == "spring",

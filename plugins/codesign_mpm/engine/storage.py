@@ -54,6 +54,7 @@ class Layout:
     requires_grad: bool
     scatter_copies: int = 1  # private grids p2g scatters into without atomics (runtime.scatter_copies)
     folded: bool = False  # reductions fold per thread first (runtime.fold_reductions)
+    serial: bool = False  # every loop on the launching thread: too little work for the thread pool (runtime.serial_loops)
     members: int = 1  # scenes simulated side by side (codesign_mpm.engine.batch); 1: a plain simulator
     has_flip: bool = False  # FLIP's share in the elastic bodies' velocity update (scene.flip > 0)
     surface_contact: bool = False  # the terrain's contact at its exact surface (terrain.contact: surface, spring)
@@ -93,6 +94,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         self.copies = layout.scatter_copies
         self.private_scatter = layout.scatter_copies > 1
         self.folded = layout.folded  # reductions into one value fold per thread first (runtime.FOLD_THREADS)
+        self.serial = layout.serial  # each kernel's loops run serially (ti.loop_config), runtime.serial_loops
         self.has_flip = layout.has_flip
         self.surface_contact = layout.surface_contact
         self.contact_memory = layout.contact_memory
@@ -211,15 +213,21 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         self._p2g_loop(s, so, t, n, j)
         if ti.static(self.private_scatter):
             self._sum_copies_loop(False)
+        ti.loop_config(serialize=self.serial)
         for b, i, k, l in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             self._grid_op_at(b, i, k, l)
         if ti.static(self.surface_contact):
+            # parallel even in a serial storage: serial loops run as one compiled function, and
+            # with the grid update in the same function fast-math rounded the spring's impulse
+            # differently from its own kernel's (1 ulp in 13 of 975 values); a parallel loop is a
+            # function of its own, as in `_contact_impulse`
             for p in range(n):
                 if ti.static(self.contact_memory):
                     self._spring_impulse_of(p, s, so)
                 else:
                     self._contact_impulse_of(p, s)
+            ti.loop_config(serialize=self.serial)
             for p in range(n):
                 self._contact_scatter_of(p, s, 1.0)
         self._g2p_loop(s, so, n, j)
@@ -231,6 +239,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
     @ti.kernel
     def _load_state(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
                     C: ti.types.ndarray(), F: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             for i in ti.static(range(3)):
                 self.x[s, p][i] = x[p, i]
@@ -242,6 +251,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
     @ti.kernel
     def _save_state(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
                     C: ti.types.ndarray(), F: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             for i in ti.static(range(3)):
                 x[p, i] = self.x[s, p][i]
@@ -252,6 +262,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
 
     @ti.kernel
     def _save_x(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             for i in ti.static(range(3)):
                 x[p, i] = self.x[s, p][i]
@@ -259,6 +270,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
     @ti.kernel
     def _save_grad(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
                    C: ti.types.ndarray(), F: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             for i in ti.static(range(3)):
                 x[p, i] = self.x.grad[s, p][i]
@@ -270,6 +282,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
     @ti.kernel
     def _add_grad(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
                   C: ti.types.ndarray(), F: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             for i in ti.static(range(3)):
                 self.x.grad[s, p][i] += x[p, i]
@@ -280,50 +293,59 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
 
     @ti.kernel
     def _load_jp(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             self.Jp[s, p] = jp[p]
 
     @ti.kernel
     def _save_jp(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             jp[p] = self.Jp[s, p]
 
     @ti.kernel
     def _save_jp_grad(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             jp[p] = self.Jp.grad[s, p]
 
     @ti.kernel
     def _add_jp_grad(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             self.Jp.grad[s, p] += jp[p]
 
     @ti.kernel
     def _load_u(self, s: ti.i32, n: ti.i32, u: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             for i in ti.static(range(3)):
                 self.u[s, p][i] = u[p, i]
 
     @ti.kernel
     def _save_u(self, s: ti.i32, n: ti.i32, u: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             for i in ti.static(range(3)):
                 u[p, i] = self.u[s, p][i]
 
     @ti.kernel
     def _save_u_grad(self, s: ti.i32, n: ti.i32, u: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             for i in ti.static(range(3)):
                 u[p, i] = self.u.grad[s, p][i]
 
     @ti.kernel
     def _add_u_grad(self, s: ti.i32, n: ti.i32, u: ti.types.ndarray()):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             for i in ti.static(range(3)):
                 self.u.grad[s, p][i] += u[p, i]
 
     @ti.kernel
     def _copy_slot(self, src: ti.i32, dst: ti.i32, n: ti.i32):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             self.x[dst, p] = self.x[src, p]
             self.v[dst, p] = self.v[src, p]
@@ -338,6 +360,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
     def _probe(self, s: ti.i32, t: ti.i32, n: ti.i32):
         """Mass-weighted sums of the tracked particles' x - probe_origin and v (divided by their mass
         and the origin added back later, in float64)."""
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             m = self.probe_w[p] * self.vol[p]
             self.com_x[t] += m * (self.x[s, p] - self.probe_origin[None])
@@ -352,6 +375,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         self.max_speed[None] = 0.0
         self.max_wave[None] = 0.0
         if ti.static(self.batched):
+            ti.loop_config(serialize=self.serial)
             for b in range(self.members):
                 self.member_speed[b] = 0.0
                 self.member_wave[b] = 0.0
@@ -371,6 +395,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
                 ti.atomic_max(self.max_speed[None], speed)
                 ti.atomic_max(self.max_wave[None], wave)
         else:
+            ti.loop_config(serialize=self.serial)
             for p in range(n):
                 bad, speed, wave = self._checked(s, p)
                 if bad:

@@ -104,6 +104,7 @@ class _Transfers:
                     ti.atomic_min(self.lo[d][None], lo[d])
                     ti.atomic_max(self.hi[d][None], hi[d])
         else:
+            ti.loop_config(serialize=self.serial)
             for p in range(n):
                 base = self._base(self.x[s, p])
                 for d in ti.static(range(3)):
@@ -294,10 +295,12 @@ class _Transfers:
     @ti.func
     def _p2g_loop(self, s, so, t, n, j):
         if ti.static(self.private_scatter):
+            ti.loop_config(serialize=self.serial)
             for c in range(self.copies):  # one chunk of particles per thread, each into its own grid
                 for p in range(c * n // self.copies, (c + 1) * n // self.copies):
                     self._p2g_one(p, s, so, t, j, c)
         else:
+            ti.loop_config(serialize=self.serial)
             for p in range(n):
                 self._p2g_one(p, s, so, t, j, -1)
 
@@ -306,6 +309,7 @@ class _Transfers:
         """Reverse of p2g for substep s (differentiable layouts): a gather per particle, no atomics.
         Written by hand, it compiles as a forward kernel (Taichi's reverse mode of the 27-node
         scatter took minutes to compile)."""
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             self._p2g_adjoint_particle(p, s)
 
@@ -405,10 +409,12 @@ class _Transfers:
         velocity gradient, private per thread as p2g's (Taichi's own adjoint of the gather uses
         atomic adds and cost 5x the forward gather)."""
         if ti.static(self.private_scatter):
+            ti.loop_config(serialize=self.serial)
             for c in range(self.copies):
                 for p in range(c * n // self.copies, (c + 1) * n // self.copies):
                     self._g2p_adjoint_particle(p, s, c)
         else:
+            ti.loop_config(serialize=self.serial)
             for p in range(n):
                 self._g2p_adjoint_particle(p, s, -1)
 
@@ -418,6 +424,7 @@ class _Transfers:
 
     @ti.func
     def _g2p_loop(self, s, so, n, j):
+        ti.loop_config(serialize=self.serial)
         for p in range(n):
             if ti.static(self.batched):
                 if self._active(p, j):
