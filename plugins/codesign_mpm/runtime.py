@@ -363,7 +363,8 @@ def serial_loops(capacity: int) -> bool:
     """Whether the kernels of a storage of `capacity` particles run their loops serially: on a CPU,
     where the other threads' share of the work is small (SERIAL_PARTICLES), or where the
     environment variable CODESIGN_SERIAL_LOOPS says 1 or 0. Each particle's and node's arithmetic
-    is the same either way (p2g's private grids keep their chunks), so the results are too."""
+    is the same either way (p2g's private grids keep their chunks): states come out bit for bit
+    alike, gradients to round-off (fast-math compiles a serial loop into its kernel's function)."""
     forced = _forced("CODESIGN_SERIAL_LOOPS")
     if forced is not None:
         return forced

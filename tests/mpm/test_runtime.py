@@ -1,6 +1,8 @@
 """codesign_mpm.runtime: Taichi set up once, its frontend's source excerpts formatted once per place,
-each function's source read once, kernels launched again from a plan, and ended programs kept from
-freeing a live program's memory."""
+each function's source read once, kernels launched again from a plan, ended programs kept from
+freeing a live program's memory, and small storages' loops kept out of the thread pool."""
+
+from types import SimpleNamespace
 
 import pytest
 import taichi as ti
@@ -248,3 +250,30 @@ def test_arch_gpu_without_a_gpu_runs_on_the_cpu_with_a_warning_instead_of_crashi
     assert arch in ("Arch.x64", "Arch.arm64", "Arch.cuda", "Arch.metal", "Arch.vulkan")
     if arch in ("Arch.x64", "Arch.arm64"):
         assert "no CUDA, Metal or Vulkan GPU; running on the CPU" in done.stderr
+
+
+def test_a_storage_runs_its_loops_serially_where_the_other_threads_would_take_little(monkeypatch):
+    """runtime.serial_loops: serial where capacity x (threads - 1) / threads <= SERIAL_PARTICLES,
+    always on one thread, never on a GPU; CODESIGN_SERIAL_LOOPS forces it, and names itself when
+    it is neither 0 nor 1."""
+    def machine(threads, arch=ti.x64):
+        config = SimpleNamespace(cpu_max_num_threads=threads, arch=arch)
+        monkeypatch.setattr(runtime, "impl", SimpleNamespace(current_cfg=lambda: config))
+
+    assert runtime.SERIAL_PARTICLES == 1024
+    machine(2)
+    assert runtime.serial_loops(2048) and not runtime.serial_loops(3072)
+    machine(16)
+    assert runtime.serial_loops(1024) and not runtime.serial_loops(2048)
+    machine(1)
+    assert runtime.serial_loops(10 ** 6)
+    machine(2, ti.cuda)
+    assert not runtime.serial_loops(1024)
+    monkeypatch.setenv("CODESIGN_SERIAL_LOOPS", "1")
+    assert runtime.serial_loops(10 ** 6)
+    monkeypatch.setenv("CODESIGN_SERIAL_LOOPS", "0")
+    machine(2)
+    assert not runtime.serial_loops(1024)
+    monkeypatch.setenv("CODESIGN_SERIAL_LOOPS", "yes")
+    with pytest.raises(ValueError, match="CODESIGN_SERIAL_LOOPS must be 0 or 1, got 'yes'"):
+        runtime.serial_loops(1024)
