@@ -259,7 +259,8 @@ def _outcome_with(variable, value, sim, actions, weights, wx, monkeypatch):
 def _assert_same(a, b, gradient_rtol=0.0):
     """States, probes, box and guard bit for bit; gradients within `gradient_rtol` of each array's
     largest magnitude."""
-    (final_a, grads_a, state_a, box_a, guard_a, reported_a), (final_b, grads_b, state_b, box_b, guard_b, reported_b) = a, b
+    final_a, grads_a, state_a, box_a, guard_a, reported_a = a
+    final_b, grads_b, state_b, box_b, guard_b, reported_b = b
     assert box_a == box_b and guard_a == guard_b
     assert reported_a == reported_b == (2, 7)
     for name in ("x", "v", "C", "F"):
@@ -285,7 +286,7 @@ def test_folded_reductions_give_the_same_box_guard_states_and_gradients(sim, act
     _assert_same(folded, unfolded)
 
 
-def test_serial_loops_give_the_parallel_loops_results_bit_for_bit(sim, actions, weights, monkeypatch):
+def test_serial_loops_give_the_parallel_loops_states_bit_for_bit_and_gradients_to_round_off(sim, actions, weights, monkeypatch):
     """A storage whose loops run on the launching thread (runtime.serial_loops: a small scene on a
     CPU) does each particle's and node's arithmetic as the thread pool does, p2g's private grids
     keeping their chunks: the same states, probes and guard, bit for bit. The gradients agree to

@@ -54,7 +54,7 @@ class Layout:
     requires_grad: bool
     scatter_copies: int = 1  # private grids p2g scatters into without atomics (runtime.scatter_copies)
     folded: bool = False  # reductions fold per thread first (runtime.fold_reductions)
-    serial: bool = False  # every loop on the launching thread: too little work for the thread pool (runtime.serial_loops)
+    serial: bool = False  # loops on the launching thread: too little work for the thread pool (runtime.serial_loops)
     members: int = 1  # scenes simulated side by side (codesign_mpm.engine.batch); 1: a plain simulator
     has_flip: bool = False  # FLIP's share in the elastic bodies' velocity update (scene.flip > 0)
     surface_contact: bool = False  # the terrain's contact at its exact surface (terrain.contact: surface, spring)
