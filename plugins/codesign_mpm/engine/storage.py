@@ -218,10 +218,10 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
             self._grid_op_at(b, i, k, l)
         if ti.static(self.surface_contact):
-            # parallel even in a serial storage: serial loops run as one compiled function, and
-            # with the grid update in the same function fast-math rounded the spring's impulse
-            # differently from its own kernel's (1 ulp in 13 of 975 values); a parallel loop is a
-            # function of its own, as in `_contact_impulse`
+            # parallel even in a serial storage: a kernel's serial loops compile into one function,
+            # and sharing it with the grid update, fast-math rounded the spring's impulse an ulp
+            # away from `_spring_impulse`'s (13 of 975 values), whose loop is its kernel's alone;
+            # a parallel loop is a function of its own
             for p in range(n):
                 if ti.static(self.contact_memory):
                     self._spring_impulse_of(p, s, so)
