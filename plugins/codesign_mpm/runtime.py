@@ -84,6 +84,8 @@ def init_taichi(arch: str = "cpu", dtype: str = "float32") -> None:
             arch=arch_obj,
             default_fp=ti.f64 if dtype == "float64" else ti.f32,
             default_ip=ti.i32,
+            # cfg_optimization stays on (Taichi's default): off, compiles took 40% less time but its reverse
+            # mode gave non-finite gradients (docs/log/performance-2026-11.md, "Where a cold suite's compile goes")
             offline_cache=True,
             offline_cache_max_size_of_files=CACHE_LIMIT_BYTES,
             **({"offline_cache_file_path": cache_dir} if cache_dir else {}),
