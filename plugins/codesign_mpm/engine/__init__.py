@@ -24,11 +24,13 @@ from codesign_mpm.engine.eigen import JACOBI_EPS, JACOBI_SWEEPS, JACOBI_TOL_ULPS
 from codesign_mpm.engine.grid import MASS_EPS
 from codesign_mpm.engine.simulator import (CHECKPOINT_MEMORY_BYTES, GRID_STORE_BYTES, GRID_STORE_MARGIN, Gradients,
                                            Rollout, SimulationError, Simulator, State)
-from codesign_mpm.engine.storage import CAPACITY_STEP, MAX_DEAD_STORAGES, MAX_FREE_STORAGES, Layout
+from codesign_mpm.engine.storage import (CAPACITY_STEP, FREE_STORAGE_BYTES, MAX_DEAD_STORAGES, MAX_FREE_STORAGES,
+                                         Layout)
 from codesign_mpm.engine.time_step import ADAPTIVE_CFL_FACTOR, MAX_ADAPTIVE_CFL, TimeStep, time_step, wave_speeds
 from codesign_mpm.engine.transfer import flip_models
 
-__all__ = ["ADAPTIVE_CFL_FACTOR", "CAPACITY_STEP", "CHECKPOINT_MEMORY_BYTES", "GRID_STORE_BYTES",
+__all__ = ["ADAPTIVE_CFL_FACTOR", "CAPACITY_STEP", "CHECKPOINT_MEMORY_BYTES", "FREE_STORAGE_BYTES",
+           "GRID_STORE_BYTES",
            "GRID_STORE_MARGIN", "Gradients", "JACOBI_EPS", "JACOBI_SWEEPS", "JACOBI_TOL_ULPS",
            "J_MIN", "Layout", "MASS_EPS", "MAX_ADAPTIVE_CFL", "MAX_DEAD_STORAGES", "MAX_FREE_STORAGES", "MODEL_NAMES",
            "Rollout", "SimulationError", "Simulator", "State", "TimeStep", "flip_models", "time_step",

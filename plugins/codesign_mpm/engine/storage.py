@@ -33,7 +33,11 @@ from codesign_mpm.engine.transfer import _Transfers
 from codesign_mpm.materials import N_PARAMS, material
 
 CAPACITY_STEP = 1024  # particle storage is allocated in these steps so similar scenes share kernels
-MAX_FREE_STORAGES = 4  # compiled storages kept for reuse after their simulators close; older ones are freed
+MAX_FREE_STORAGES = 16  # compiled storages kept for reuse after their simulators close; older ones are freed
+FREE_STORAGE_BYTES = 512 * 1024**2
+"""The fields' memory the released storages may keep beyond the newest one. A storage rebuilt after
+eviction pays Taichi's frontend again (and a compile, when its field ids differ from the first
+build's): small scenes keep many, a paper-scale one (about 250 MB) one or two."""
 MAX_DEAD_STORAGES = 32  # freed storages (their kernels stay compiled) before an idle program is recycled
 
 
@@ -106,22 +110,26 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         n, K, gs, grad = layout.capacity, max(layout.n_actuators, 1), layout.grid_shape, layout.requires_grad
         slots, rows = layout.slots, layout.rows
         builder = ti.FieldsBuilder()
+        real_bytes = 8 if impl.current_cfg().default_fp == ti.f64 else 4
+        self.nbytes = 0  # the fields' memory, which a released storage keeps while pooled (FREE_STORAGE_BYTES)
 
-        def placed(make, shape, differentiable=False):
+        def placed(make, shape, values, differentiable=False, item_bytes=real_bytes):
             """A field of `shape` in this storage's tree (with its gradient if asked and grad is on)."""
             f = make(needs_grad=grad and differentiable)
             node = builder.dense(ti.axes(*range(len(shape))), shape) if shape else builder
             node.place(f, f.grad) if grad and differentiable else node.place(f)
+            self.nbytes += int(np.prod(shape)) * values * item_bytes * (2 if grad and differentiable else 1)
             return f
 
         def vec(k, shape, differentiable=False):
-            return placed(lambda **kw: ti.Vector.field(k, float, **kw), shape, differentiable)
+            return placed(lambda **kw: ti.Vector.field(k, float, **kw), shape, k, differentiable)
 
         def mat(shape, differentiable=False):
-            return placed(lambda **kw: ti.Matrix.field(3, 3, float, **kw), shape, differentiable)
+            return placed(lambda **kw: ti.Matrix.field(3, 3, float, **kw), shape, 9, differentiable)
 
         def scalar(shape, differentiable=False, dtype=float):
-            return placed(lambda **kw: ti.field(dtype, **kw), shape, differentiable)
+            return placed(lambda **kw: ti.field(dtype, **kw), shape, 1, differentiable,
+                          real_bytes if dtype is float else 4)
 
         self.x = vec(3, (slots, n), True)
         self.v = vec(3, (slots, n), True)
@@ -441,12 +449,14 @@ def _acquire(layout: Layout) -> _Storage:
 
 
 def _release(generation: int, storage: _Storage) -> None:
-    """Keep a closed simulator's storage for reuse, freeing the oldest beyond MAX_FREE_STORAGES."""
+    """Keep a closed simulator's storage for reuse, freeing the oldest beyond MAX_FREE_STORAGES or,
+    the newest one aside, beyond FREE_STORAGE_BYTES of fields."""
     _in_use.pop(id(storage), None)
     if generation != runtime.generation:
         return
     _free[id(storage)] = ((generation, storage.layout), storage)
-    while len(_free) > MAX_FREE_STORAGES:
+    while len(_free) > MAX_FREE_STORAGES or (
+            len(_free) > 1 and sum(kept.nbytes for _, kept in _free.values()) > FREE_STORAGE_BYTES):
         _, (_, oldest) = _free.popitem(last=False)
         oldest.free()
         # Taichi keys a data-oriented object's compiled kernels by the object's id(): keep the
