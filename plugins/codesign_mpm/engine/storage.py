@@ -34,11 +34,11 @@ from codesign_mpm.materials import N_PARAMS, material
 
 CAPACITY_STEP = 1024  # particle storage is allocated in these steps so similar scenes share kernels
 MAX_FREE_STORAGES = 16  # compiled storages kept for reuse after their simulators close; older ones are freed
-FREE_STORAGE_BYTES = 512 * 1024**2
+FREE_STORAGE_BYTES = 2 * 1024**3
 """The fields' memory the released storages may keep beyond the newest one. A storage rebuilt after
 eviction pays Taichi's frontend again (and a compile, when its field ids differ from the first
 build's): small scenes keep many; at the paper's scale a forward storage takes about 140 MB, a
-differentiable one of 200 frames about 570 MB."""
+differentiable one of 200 frames about 570 MB, so four of those stay as before the budget."""
 MAX_DEAD_STORAGES = 32  # freed storages (their kernels stay compiled) before an idle program is recycled
 
 
