@@ -1,6 +1,6 @@
 """Compiled storages: reused by simulators of the same layout, freed beyond a few or beyond a memory
-budget, and a Taichi
-program with too many freed ones recycled once no simulator is alive (bounded memory in sweeps)."""
+budget, and a Taichi program with too many freed ones recycled once no simulator is alive (bounded
+memory in sweeps)."""
 import numpy as np
 
 from codesign_mpm import BodySpec, Scene, ShapeSpec, build_particles, runtime
@@ -49,11 +49,10 @@ def test_freed_storages_are_bounded_by_recycling_an_idle_program(monkeypatch):
 def test_released_storages_are_kept_within_their_memory_budget_the_newest_always(monkeypatch):
     first, _ = fall(1)
     second, _ = fall(2)  # another layout: its own storage, as large
-    big = [(s.layout.rows, s.nbytes) for s in (first.k, second.k)]
-    # x, v, C and F in 2 slots: 24 floats a particle each, the whole storage more
-    assert all(nbytes > first.k.layout.capacity * 2 * 24 * 4 for _, nbytes in big), big
-    monkeypatch.setattr(engine, "FREE_STORAGE_BYTES", first.k.nbytes + second.k.nbytes - 1)
     storages = first.k, second.k
+    state_bytes = first.k.layout.capacity * 2 * 24 * 4  # x, v, C and F in 2 slots, float32
+    assert all(s.nbytes > state_bytes for s in storages), [s.nbytes for s in storages]  # the grids come on top
+    monkeypatch.setattr(engine, "FREE_STORAGE_BYTES", first.k.nbytes + second.k.nbytes - 1)
     first.close()
     second.close()  # both kept would exceed the budget: the older one goes
     kept = [s for _, s in engine._free.values()]

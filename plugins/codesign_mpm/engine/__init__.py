@@ -30,8 +30,7 @@ from codesign_mpm.engine.time_step import ADAPTIVE_CFL_FACTOR, MAX_ADAPTIVE_CFL,
 from codesign_mpm.engine.transfer import flip_models
 
 __all__ = ["ADAPTIVE_CFL_FACTOR", "CAPACITY_STEP", "CHECKPOINT_MEMORY_BYTES", "FREE_STORAGE_BYTES",
-           "GRID_STORE_BYTES",
-           "GRID_STORE_MARGIN", "Gradients", "JACOBI_EPS", "JACOBI_SWEEPS", "JACOBI_TOL_ULPS",
+           "GRID_STORE_BYTES", "GRID_STORE_MARGIN", "Gradients", "JACOBI_EPS", "JACOBI_SWEEPS", "JACOBI_TOL_ULPS",
            "J_MIN", "Layout", "MASS_EPS", "MAX_ADAPTIVE_CFL", "MAX_DEAD_STORAGES", "MAX_FREE_STORAGES", "MODEL_NAMES",
            "Rollout", "SimulationError", "Simulator", "State", "TimeStep", "flip_models", "time_step",
            "wave_speeds"]
