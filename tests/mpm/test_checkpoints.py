@@ -53,3 +53,17 @@ def test_a_checkpoint_that_cannot_be_written_names_the_directory_and_the_remedy(
     monkeypatch.setattr(store._file, "write", full)
     with pytest.raises(OSError, match=f"checkpoint 1 .* to {tmp_path}: .*No space left.*CODESIGN_CHECKPOINT_DIR"):
         store.append(states(1)[0])
+
+
+
+def test_the_default_segment_is_the_whole_episode_where_its_states_fit(monkeypatch):
+    """Backward recomputes every segment but the last: within SEGMENT_MEMORY_BYTES the whole episode
+    is one segment, beyond it as many substeps as fit, never fewer than the memory-optimal sqrt(T / 2)."""
+    from codesign_mpm.engine import simulator
+
+    monkeypatch.setattr(simulator, "SEGMENT_MEMORY_BYTES", 101_000)  # 101 slots of 1,000 bytes: 100 substeps
+    assert simulator.default_segment(80, slot_bytes=1000) == 80
+    assert simulator.default_segment(100, slot_bytes=1000) == 100
+    assert simulator.default_segment(500, slot_bytes=1000) == 100
+    assert simulator.default_segment(500, slot_bytes=100_000) == 16  # none fit: ceil(sqrt(250))
+    assert simulator.default_segment(1, slot_bytes=100_000) == 1

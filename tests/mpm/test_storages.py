@@ -62,3 +62,26 @@ def test_released_storages_are_kept_within_their_memory_budget_the_newest_always
     newest = third.k
     third.close()  # alone over the budget, the newest is kept all the same
     assert [s for _, s in engine._free.values()] == [newest]
+
+
+def test_a_slot_of_particle_state_takes_what_its_layout_says():
+    """Layout.slot_bytes sizes the default differentiable segment: it must count every field with a
+    slot axis (x, v, C, F, J_p beside plastic parameters, the springs) and their gradients."""
+    from dataclasses import replace
+
+    from codesign_mpm.materials import MODEL_NAMES
+
+    runtime.init_taichi("cpu", "float32")
+    snow = next(i for i, name in MODEL_NAMES.items() if name == "snow")
+    every = engine.Layout(capacity=1024, n_actuators=2, slots=3, rows=2, grid_shape=(8, 8, 8), models=(0, snow),
+                          has_muscles=True, muscle_model="active", has_terrain=True, boundary_cells=3,
+                          requires_grad=True, surface_contact=True, contact_memory=True)
+    for layout in (every, replace(every, models=(0,), surface_contact=False, contact_memory=False),
+                   replace(every, requires_grad=False)):
+        three, four = engine._Storage(layout), engine._Storage(replace(layout, slots=4))
+        try:
+            assert four.nbytes - three.nbytes == layout.slot_bytes(4), layout
+        finally:
+            three.free()
+            four.free()
+    assert every.slot_bytes(4) == 1024 * (24 + 1 + 3) * 4 * 2

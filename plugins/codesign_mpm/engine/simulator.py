@@ -48,6 +48,18 @@ from codesign_mpm.scene.terrain import height_map, normals
 GRID_STORE_BYTES = 256 * 1024**2  # at most this much keeps a segment's grids for the reverse pass
 GRID_STORE_MARGIN = 2.0  # a rollout's grid records hold this times the particles' box at its start (or the largest seen)
 CHECKPOINT_MEMORY_BYTES = 128 * 1024**2  # a rollout's checkpoints beyond this go to a temporary file
+SEGMENT_MEMORY_BYTES = 256 * 1024**2
+"""A differentiable simulator's segment (its slots of particle state, gradients included) grows to this
+much by default: the backward pass recomputes every segment but the last, so an episode whose
+states fit is not recomputed at all."""
+
+
+def default_segment(substeps: int, slot_bytes: int) -> int:
+    """Substeps between checkpoints for an episode of `substeps` (at the resting step): the whole
+    episode where its states fit in SEGMENT_MEMORY_BYTES, else as many as fit, and never fewer than
+    sqrt(substeps / 2), the interval that minimises memory (checkpoints plus slots)."""
+    fitting = SEGMENT_MEMORY_BYTES // max(slot_bytes, 1) - 1
+    return max(1, math.ceil(math.sqrt(substeps / 2)), min(substeps, fitting))
 
 
 class SimulationError(RuntimeError):
@@ -117,8 +129,8 @@ class Simulator:
     """MLS-MPM simulation of one scene.
 
     `requires_grad=True` allocates gradient storage for rollouts of up to `max_frames` frames
-    with a checkpoint every `checkpoint_every` substeps (default: the memory-optimal
-    sqrt(total / 2)). Without it, `step` advances the scene frame by frame at full speed.
+    with a checkpoint every `checkpoint_every` substeps (default: `default_segment`, the whole
+    episode where its states fit in SEGMENT_MEMORY_BYTES). Without it, `step` advances the scene frame by frame at full speed.
     Compiled kernels are reused from any earlier simulator of the same layout that has been
     closed or garbage-collected; `capacity` (particles) lets simulators of designs with
     different particle counts share one layout.
@@ -142,14 +154,13 @@ class Simulator:
         self.n_actuators = particles.n_actuators
         self.requires_grad = requires_grad
         self.max_frames = max_frames
-        self.segment = checkpoint_every or max(1, math.ceil(math.sqrt(max_frames * self.timestep.substeps / 2)))
         self.body_names = [b.name for b in scene.bodies]
         models = tuple(sorted(set(int(m) for m in particles.material)))
         allocated = -(-max(particles.n, capacity or 0) // CAPACITY_STEP) * CAPACITY_STEP
         self.layout = self._layout(Layout(
             capacity=allocated,
             n_actuators=particles.n_actuators,
-            slots=self.segment + 1 if requires_grad else 2,
+            slots=2,
             rows=max_frames + 1,
             grid_shape=scene.grid_shape,
             models=models,
@@ -164,6 +175,10 @@ class Simulator:
             surface_contact=scene.terrain.kind != "none" and scene.terrain.contact in ("surface", "spring"),
             contact_memory=scene.terrain.kind != "none" and scene.terrain.contact == "spring",
         ))
+        self.segment = checkpoint_every or default_segment(
+            max_frames * self.timestep.substeps, self.layout.slot_bytes(np.dtype(self.np_real).itemsize))
+        if requires_grad:
+            self.layout = replace(self.layout, slots=self.segment + 1)
         self.k = _acquire(self.layout)
         self._generation = runtime.generation
         self._finalizer = weakref.finalize(self, _release, self._generation, self.k)
@@ -171,6 +186,8 @@ class Simulator:
         self._initial_jp: np.ndarray | None = None
         self._initial_u: np.ndarray | None = None
         self.rollouts = 0
+        self.recomputed_substeps = 0
+        """Substeps the last `backward` recomputed from checkpoints (every segment's but the last)."""
         self._grid_store = self._grid_boxes = None  # the segment's grids, kept for the reverse pass
         self._largest_box = 0  # nodes of the largest box a backward pass saw: the next records hold it
         self._checkpoints = CheckpointStore(CHECKPOINT_MEMORY_BYTES)
@@ -610,7 +627,6 @@ class Simulator:
         if not 1 <= T <= self.max_frames:
             raise ValueError(f"a rollout takes 1 to max_frames={self.max_frames} frames, got {T}")
         self._check_bound(actions)
-        self._rollout_segment = S
         self.rollouts += 1  # lets callers (the torch bridge) tell whether backward() is still theirs
         self.reset()
         if start is not None:
@@ -635,18 +651,25 @@ class Simulator:
         self.k._check(0, self.n)
         # the substeps of each frame follow its starting state; the backward pass replays them
         self._substep_frame: list[int] = []  # frame (action row) of every substep
-        s, keep = S, False  # slot within the segment; whether this segment keeps its grids
+        self._segment_starts: list[int] = []  # the substep each segment starts at
+        s = L = 0  # slot within the segment, and the segment's length
+        keep = False  # whether this segment keeps its grids
         for t in range(T):
             substeps = self._plan_frame()
             self.frame_substeps.append(substeps)
             for j in range(substeps):
-                if s == S:  # a new segment: checkpoint its first state
+                if s == L:  # a new segment: checkpoint its first state
                     if self._checkpoints:
-                        self.k._copy_slot(S, 0, self.n)
+                        self.k._copy_slot(L, 0, self.n)
                     self._checkpoints.append(self._state(0))
+                    self._segment_starts.append(len(self._substep_frame))
                     s = 0
-                    # probably the last segment, still in the slots for backward: keep its grids too
-                    keep = (substeps - j) + (T - 1 - t) * substeps <= S
+                    # segments end with the episode (as far as this frame's step foretells it): the
+                    # first is the shortest, and the last, which backward need not recompute as it is
+                    # still in the slots, is a whole one; it keeps its grids too
+                    remaining = (substeps - j) + (T - 1 - t) * substeps
+                    keep = remaining <= S
+                    L = S if keep else (remaining - 1) % S + 1
                 self._substep(s, s + 1, t, keep_grid=keep)
                 self._substep_frame.append(t)
                 s += 1
@@ -702,7 +725,7 @@ class Simulator:
         if not self.rollout_is_current:
             raise RuntimeError("the simulator changed since the last rollout() (step, reset, set_design, "
                                "set_initial_state or stress overwrite what backward() replays); run rollout() again")
-        T, S, n, r = self._T, self._rollout_segment, self.n, self.np_real
+        T, n, r = self._T, self.n, self.np_real
         frame_of, substeps = self._substep_frame, self.frame_substeps
         for f in (self.k.vol, self.k.E, self.k.muscle, self.k.fiber, self.k.act, self.k.com_x, self.k.com_v):
             f.grad.fill(0)
@@ -724,22 +747,22 @@ class Simulator:
                  seed(u, (n, 3)))
         total = len(frame_of)
         last_of_frame = set(np.cumsum(substeps) - 1)  # substeps after which a frame's probe ran
-        starts = list(range(0, total, S))
+        starts = self._segment_starts
+        self.recomputed_substeps = 0
         for k in reversed(range(len(starts))):
             g0 = starts[k]
-            L = min(S, total - g0)
+            L = (starts[k + 1] if k + 1 < len(starts) else total) - g0
             if self._segment_in_slots != k:  # recompute the segment's states, keeping their grids
                 self._load(0, self._checkpoints[k])
                 for s in range(L):
                     self._set_dt(self.scene.frame_dt / substeps[frame_of[g0 + s]])
                     self._substep(s, s + 1, frame_of[g0 + s], keep_grid=True)
                 self._segment_in_slots = k
+                self.recomputed_substeps += L
             boxes = self._grid_boxes.to_numpy()[:L]
             kept = boxes[:, 6] == 1
             self._largest_box = max(self._largest_box, int(np.prod(boxes[:, 3:6] - boxes[:, :3], axis=1).max()))
-            for f in ((self.k.x, self.k.v, self.k.C, self.k.F) + ((self.k.Jp,) if self.k.has_jp else ())
-                      + ((self.k.u,) if self.k.contact_memory else ())):
-                f.grad.fill(0)
+            self.k._clear_state_grad(L + 1, n)
             self.k._add_grad(L, n, *carry[:4])
             if self.k.has_jp:
                 self.k._add_jp_grad(L, n, carry[4])

@@ -65,6 +65,17 @@ class Layout:
     surface_contact: bool = False  # the terrain's contact at its exact surface (terrain.contact: surface, spring)
     contact_memory: bool = False  # the surface contact as springs whose friction remembers (terrain.contact: spring)
 
+    @property
+    def has_params(self) -> bool:
+        """Per-particle parameter vectors: the non-elastic models', and a plugin's elastic model with parameters."""
+        return any(material(m).plastic or material(m).parameters for m in self.models)
+
+    def slot_bytes(self, real_bytes: int) -> int:
+        """The fields' memory of one slot of particle state (x, v, C, F; J_p beside parameters; the
+        springs), gradients included: what each substep of a differentiable segment costs."""
+        values = 3 + 3 + 9 + 9 + self.has_params + 3 * self.contact_memory
+        return self.capacity * values * real_bytes * (2 if self.requires_grad else 1)
+
 
 @runtime.data_oriented
 class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
@@ -81,8 +92,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         self.layout = layout
         self.grid_shape = layout.grid_shape
         self.models = layout.models
-        # per-particle parameter vectors: the non-elastic models', and a plugin's elastic model with parameters
-        self.has_params = any(material(m).plastic or material(m).parameters for m in layout.models)
+        self.has_params = layout.has_params
         # the stress in kernels of its own ahead of p2g: plastic models (one small kernel per model
         # compiles far faster than all of them fused into the scatter) and every differentiable
         # layout (p2g's adjoint is then the scatter's alone, differentiated plane by plane)
@@ -287,6 +297,22 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
                 for j in ti.static(range(3)):
                     C[p, i, j] = self.C.grad[s, p][i, j]
                     F[p, i, j] = self.F.grad[s, p][i, j]
+
+    @ti.kernel
+    def _clear_state_grad(self, slots: ti.i32, n: ti.i32):
+        """Zero the particle states' gradients in the segment's first `slots` slots: only those a
+        segment uses, where a fill would clear every slot (a one-frame rollout in a simulator sized
+        for a whole episode uses a few of them)."""
+        ti.loop_config(serialize=self.serial)
+        for s, p in ti.ndrange(slots, n):
+            self.x.grad[s, p] = ti.Vector.zero(float, 3)
+            self.v.grad[s, p] = ti.Vector.zero(float, 3)
+            self.C.grad[s, p] = ti.Matrix.zero(float, 3, 3)
+            self.F.grad[s, p] = ti.Matrix.zero(float, 3, 3)
+            if ti.static(self.has_jp):
+                self.Jp.grad[s, p] = 0.0
+            if ti.static(self.contact_memory):
+                self.u.grad[s, p] = ti.Vector.zero(float, 3)
 
     @ti.kernel
     def _add_grad(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),

@@ -250,7 +250,8 @@ class LocomotionConfig:
                 "fewer than at rest; false: the step at rest throughout"})
     checkpoint_every: Optional[int] = field(default=None, metadata={
         "ge": 1, "help": "substeps between stored states of a differentiable episode; null = the quality "
-                         "preset's (memory-optimal sqrt(T/2) when it has none)"})
+                         "preset's (when it has none: the whole episode where its states fit in 256 MB, "
+                         "else as many as fit, at least the memory-optimal sqrt(T/2))"})
     size: list[float] = field(
         default_factory=lambda: [1.0, 0.5, 0.5], metadata={"gt": 0, "min_len": 3, "help": "domain extents"}
     )

@@ -104,7 +104,8 @@ def measure_backward(case: Case, frames: int = 200, repeats: int = 1) -> dict:
     assert np.isfinite(out.com_x).all()
     substeps = sum(sim.frame_substeps)
     return dict(measure="backward", particles=sim.n, frames=frames, substeps=substeps,
-                checkpoint_every=sim.segment, first_call_s=round(first, 3),
+                checkpoint_every=sim.segment, recomputed_substeps=sim.recomputed_substeps,
+                storage_mb=round(sim.k.nbytes / 2**20, 1), first_call_s=round(first, 3),
                 forward_s=float(np.median(fwd)), forward_backward_s=float(np.median(total)),
                 backward_over_forward=float(np.median(total) / np.median(fwd)), repeats=repeats,
                 peak_rss_mb=round(_peak_rss_mb(), 1))

@@ -22,7 +22,7 @@ class Quality:
     cover_particles_per_cell: int  # the ground cover's (sand, water, snow ...): a cover layer's
     cfl: float
     dtype: str
-    checkpoint_every: Optional[int] = None  # substeps between stored states; None: sqrt(T / 2), memory-optimal
+    checkpoint_every: Optional[int] = None  # substeps between stored states; None: engine's default_segment
     purpose: str = ""
 
     def settings(self) -> dict:
