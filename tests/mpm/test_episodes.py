@@ -5,6 +5,8 @@ an open-loop (`sine`, `trajectory`: one checkpointed rollout) and a closed-loop 
 
 One small scene layout throughout, so the backward kernels compile once.
 """
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -18,6 +20,7 @@ from codesign_designs.config import ParticleConfig
 from codesign_designs.particle import ParticleRepresentation
 from codesign_mpm.environment.config import PRESET_CONFIGS, PRESETS, RobotConfig, TaskConfig, TerrainConfig
 from codesign_mpm.environment.env import LocomotionEnv
+from codesign_mpm.environment.episode import design_inputs
 
 pytestmark = pytest.mark.slow
 HORIZON = 4
@@ -197,3 +200,20 @@ def test_gymnasium_environments_pass_the_checker(env_id):
         np.testing.assert_array_equal(env.step(np.zeros(4, np.float32))[0].shape, first.shape)
     finally:
         env.close()
+
+
+def test_every_designs_differentiable_simulator_takes_the_first_ones_compiled_storage(env):
+    """A design with fewer particles gets a simulator of its own, and a stiffer one a finer time step,
+    which would change the default segment; both keep the first design's capacity and segment, so
+    the next simulator takes the same compiled storage (no compile, no frontend)."""
+    rep, _ = parts(env, SineController(SineConfig()))
+    design = rep()
+    first = env.grad_simulator(design_inputs(env, design)[0])
+    storage, substeps = first.k, first.timestep.substeps
+    n = env.base_particles.n
+    occupancy = torch.as_tensor(design.occupancy).detach().clone().reshape(n)
+    occupancy[: n // 4] = 0.0
+    stiffer = replace(design, occupancy=occupancy, stiffness=torch.as_tensor(design.stiffness).detach() * 4)
+    second = env.grad_simulator(design_inputs(env, stiffer)[0])
+    assert second.n < first.n and second.timestep.substeps > substeps
+    assert second.k is storage

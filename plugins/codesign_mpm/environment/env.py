@@ -235,6 +235,7 @@ class LocomotionEnv(Environment):
         self._fillable = self._under_cover(cover)
         self.sim: Simulator | None = None
         self._grad_sim: Simulator | None = None
+        self._grad_segment: int | None = None  # the first design's default segment, kept for the next ones
         self._batch: BatchSimulator | None = None
         self._episode: EpisodeState | None = None
         self._population: list[EpisodeState] = []
@@ -452,13 +453,16 @@ class LocomotionEnv(Environment):
         return run_episode(self, design, controller, checkpoint_every)
 
     def grad_simulator(self, particles: Particles, start: dict[str, np.ndarray] | None = None) -> Simulator:
-        """A differentiable simulator for `particles` (one per particle count, sharing one layout) at
+        """A differentiable simulator for `particles` (one per particle count, sharing one layout: the
+        capacity and the segment are the first design's, which a stiffer one's time step would change) at
         `start` (default: `initial_state(particles)`)."""
         if self._grad_sim is None or self._grad_sim.n != particles.n:
             if self._grad_sim is not None:
                 self._grad_sim.close()
             self._grad_sim = Simulator(self.scene, particles, requires_grad=True, max_frames=self.horizon,
-                                       checkpoint_every=self.config.checkpoint_every, capacity=self.capacity)
+                                       checkpoint_every=self.config.checkpoint_every or self._grad_segment,
+                                       capacity=self.capacity)
+            self._grad_segment = self._grad_sim.segment
         else:
             self._grad_sim.reset(particles)
         self._grad_sim.set_initial_state(**(self.initial_state(particles) if start is None else start))
