@@ -202,18 +202,22 @@ def test_gymnasium_environments_pass_the_checker(env_id):
         env.close()
 
 
-def test_every_designs_differentiable_simulator_takes_the_first_ones_compiled_storage(env):
+def test_every_designs_differentiable_simulator_takes_the_first_ones_compiled_storage():
     """A design with fewer particles gets a simulator of its own, and a stiffer one a finer time step,
     which would change the default segment; both keep the first design's capacity and segment, so
     the next simulator takes the same compiled storage (no compile, no frontend)."""
-    rep, _ = parts(env, SineController(SineConfig()))
-    design = rep()
-    first = env.grad_simulator(design_inputs(env, design)[0])
-    storage, substeps = first.k, first.timestep.substeps
-    n = env.base_particles.n
-    occupancy = torch.as_tensor(design.occupancy).detach().clone().reshape(n)
-    occupancy[: n // 4] = 0.0
-    stiffer = replace(design, occupancy=occupancy, stiffness=torch.as_tensor(design.stiffness).detach() * 4)
-    second = env.grad_simulator(design_inputs(env, stiffer)[0])
-    assert second.n < first.n and second.timestep.substeps > substeps
-    assert second.k is storage
+    env = make_env()  # its own: the module's may predate a Taichi program of another precision
+    try:
+        rep, _ = parts(env, SineController(SineConfig()))
+        design = rep()
+        first = env.grad_simulator(design_inputs(env, design)[0])
+        storage, substeps = first.k, first.timestep.substeps
+        n = env.base_particles.n
+        occupancy = torch.as_tensor(design.occupancy).detach().clone().reshape(n)
+        occupancy[: n // 4] = 0.0
+        stiffer = replace(design, occupancy=occupancy, stiffness=torch.as_tensor(design.stiffness).detach() * 4)
+        second = env.grad_simulator(design_inputs(env, stiffer)[0])
+        assert second.n < first.n and second.timestep.substeps > substeps
+        assert second.k is storage
+    finally:
+        env.close()
