@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # The GPU figures of docs/performance.md ("On a GPU", issue 48), in priority order within a time
-# budget: forward and backward per scale, where a substep's time goes, a batch of 64 quick-start-size
-# designs and where its substep goes, the paper-scale environments (the base of docs/studies.md's
-# estimate of the paper's scale),
-# one cell of Table 1 at the paper's scale on a fraction of its budget (benchmarks/paper_cell.py),
-# and last, if BASELINE names a checkout of an older commit, its forward rates on the same machine.
+# budget: forward and backward per scale (the paper's again without recompute), where a substep's
+# time goes, a batch of 64 quick-start-size designs and where its substep goes, the paper-scale
+# environments (the base of docs/studies.md's estimate of the paper's scale), one cell of Table 1
+# at the paper's scale on a fraction of its budget (benchmarks/paper_cell.py), and last, if
+# BASELINE names a checkout of an older commit, its forward rates on the same machine.
 #
 #   OUT=gpu-records BUDGET_S=540 bash benchmarks/gpu.sh          # from the repository root, on a CUDA machine
 #
@@ -37,6 +37,9 @@ bench="python3 -m codesign bench"
 scales() { for s in $1; do printf -- '--scale %s ' "$s"; done; }
 within_budget 200 $bench engine --arch "$ARCH" $(scales "$SCALES") --measure forward --measure backward --frames 40 \
     --no-progress >> "$OUT/engine.jsonl"
+# the paper's scale again with its whole episode in one segment (4.8 GB: memory a GPU has to spare)
+CODESIGN_SEGMENT_MEMORY_MB=8192 within_budget 60 $bench engine --arch "$ARCH" --scale paper --measure backward \
+    --frames 40 --no-progress >> "$OUT/engine.jsonl"
 within_budget 100 $bench engine --arch "$ARCH" --profile $(scales "$PROFILED") --no-progress >> "$OUT/profile.jsonl"
 within_budget 60 $bench engine --arch "$ARCH" --scale tiny --measure batch --members 64 --no-progress >> "$OUT/engine.jsonl"
 # where the batch's substep goes: the 64 members' one launch against one member's

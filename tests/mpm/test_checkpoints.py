@@ -67,3 +67,15 @@ def test_the_default_segment_is_the_whole_episode_where_its_states_fit(monkeypat
     assert simulator.default_segment(500, slot_bytes=1000) == 100
     assert simulator.default_segment(500, slot_bytes=100_000) == 16  # none fit: ceil(sqrt(250))
     assert simulator.default_segment(1, slot_bytes=100_000) == 1
+
+
+def test_the_segments_memory_may_be_set_from_the_environment(monkeypatch):
+    from codesign_mpm.engine import simulator
+
+    monkeypatch.setenv("CODESIGN_SEGMENT_MEMORY_MB", "1")  # 1 MiB: 1,047 slots of 1,000 bytes
+    assert simulator.default_segment(5000, slot_bytes=1000) == 1047
+    monkeypatch.setenv("CODESIGN_SEGMENT_MEMORY_MB", "0")
+    assert simulator.default_segment(5000, slot_bytes=1000) == 50  # the memory-optimal sqrt(2500)
+    monkeypatch.setenv("CODESIGN_SEGMENT_MEMORY_MB", "1.5")
+    with pytest.raises(ValueError, match="CODESIGN_SEGMENT_MEMORY_MB must be a whole number of megabytes.*'1.5'"):
+        simulator.default_segment(5000, slot_bytes=1000)

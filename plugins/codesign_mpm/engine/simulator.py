@@ -27,6 +27,7 @@ g2p's, the contact's, grid_op's, p2g's and the stress's adjoints. `rollout` stor
 # (no `from __future__ import annotations`: Taichi reads kernel annotations at runtime)
 
 import math
+import os
 import weakref
 from dataclasses import dataclass, replace
 from typing import Callable
@@ -51,14 +52,26 @@ CHECKPOINT_MEMORY_BYTES = 128 * 1024**2  # a rollout's checkpoints beyond this g
 SEGMENT_MEMORY_BYTES = 256 * 1024**2
 """A differentiable simulator's segment (its slots of particle state, gradients included) grows to this
 much by default: the backward pass recomputes every segment but the last, so an episode whose
-states fit is not recomputed at all."""
+states fit is not recomputed at all. The environment variable CODESIGN_SEGMENT_MEMORY_MB overrides
+it (a GPU with memory to spare)."""
+
+
+def segment_memory_bytes() -> int:
+    """SEGMENT_MEMORY_BYTES, or CODESIGN_SEGMENT_MEMORY_MB where it is set."""
+    forced = os.environ.get("CODESIGN_SEGMENT_MEMORY_MB")
+    if not forced:
+        return SEGMENT_MEMORY_BYTES
+    if not forced.isdigit():
+        raise ValueError(f"CODESIGN_SEGMENT_MEMORY_MB must be a whole number of megabytes (0: the "
+                         f"memory-optimal segment), got {forced!r}")
+    return int(forced) * 1024**2
 
 
 def default_segment(substeps: int, slot_bytes: int) -> int:
     """Substeps between checkpoints for an episode of `substeps` (at the resting step): the whole
-    episode where its states fit in SEGMENT_MEMORY_BYTES, else as many as fit, and never fewer than
-    sqrt(substeps / 2), the interval that minimises memory (checkpoints plus slots)."""
-    fitting = SEGMENT_MEMORY_BYTES // max(slot_bytes, 1) - 1
+    episode where its states fit in `segment_memory_bytes()`, else as many as fit, and never fewer
+    than sqrt(substeps / 2), the interval that minimises memory (checkpoints plus slots)."""
+    fitting = segment_memory_bytes() // max(slot_bytes, 1) - 1
     return max(1, math.ceil(math.sqrt(substeps / 2)), min(substeps, fitting))
 
 
