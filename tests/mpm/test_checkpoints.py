@@ -55,7 +55,6 @@ def test_a_checkpoint_that_cannot_be_written_names_the_directory_and_the_remedy(
         store.append(states(1)[0])
 
 
-
 def test_the_default_segment_is_the_whole_episode_where_its_states_fit(monkeypatch):
     """Backward recomputes every segment but the last: within SEGMENT_MEMORY_BYTES the whole episode
     is one segment, beyond it as many substeps as fit, never fewer than the memory-optimal sqrt(T / 2)."""

@@ -1,11 +1,14 @@
 """Compiled storages: reused by simulators of the same layout, freed beyond a few or beyond a memory
 budget, and a Taichi program with too many freed ones recycled once no simulator is alive (bounded
 memory in sweeps)."""
+from dataclasses import replace
+
 import numpy as np
 
 from codesign_mpm import BodySpec, Scene, ShapeSpec, build_particles, runtime
 from codesign_mpm.engine import storage as engine  # the pool of compiled storages
 from codesign_mpm.engine import Simulator
+from codesign_mpm.materials import MODEL_NAMES
 
 SCENE = Scene(size=[0.5, 0.5, 0.5], dx=1 / 24, bodies=[BodySpec(shape=ShapeSpec(size=[0.12, 0.12, 0.12]),
                                                                  center=[0.25, 0.2, 0.25])])
@@ -67,10 +70,6 @@ def test_released_storages_are_kept_within_their_memory_budget_the_newest_always
 def test_a_slot_of_particle_state_takes_what_its_layout_says():
     """Layout.slot_bytes sizes the default differentiable segment: it must count every field with a
     slot axis (x, v, C, F, J_p beside plastic parameters, the springs) and their gradients."""
-    from dataclasses import replace
-
-    from codesign_mpm.materials import MODEL_NAMES
-
     runtime.init_taichi("cpu", "float32")
     snow = next(i for i, name in MODEL_NAMES.items() if name == "snow")
     every = engine.Layout(capacity=1024, n_actuators=2, slots=3, rows=2, grid_shape=(8, 8, 8), models=(0, snow),

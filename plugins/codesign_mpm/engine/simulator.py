@@ -143,7 +143,8 @@ class Simulator:
 
     `requires_grad=True` allocates gradient storage for rollouts of up to `max_frames` frames
     with a checkpoint every `checkpoint_every` substeps (default: `default_segment`, the whole
-    episode where its states fit in SEGMENT_MEMORY_BYTES). Without it, `step` advances the scene frame by frame at full speed.
+    episode where its states fit in SEGMENT_MEMORY_BYTES). Without it, `step` advances the scene
+    frame by frame at full speed.
     Compiled kernels are reused from any earlier simulator of the same layout that has been
     closed or garbage-collected; `capacity` (particles) lets simulators of designs with
     different particle counts share one layout.

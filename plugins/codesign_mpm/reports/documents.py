@@ -221,7 +221,8 @@ def _preset_section(rows: list[dict]) -> list[str]:
     for name, q in QUALITY.items():
         setting = q.settings()
         cells = [f"`{name}`", f"1/{round(1 / q.dx)}", q.particles_per_cell, q.cover_particles_per_cell,
-                 f"{q.cfl:g}", q.dtype, "auto (the episode, within 256 MB)" if q.checkpoint_every is None else q.checkpoint_every]
+                 f"{q.cfl:g}", q.dtype,
+                 "auto (the episode, within 256 MB)" if q.checkpoint_every is None else q.checkpoint_every]
         for problem in ("robot_ground", "robot_desert"):
             match = [r for r in rows if r.get("problem") == problem and "error" in r and _same_setting(r, setting)]
             if match:
