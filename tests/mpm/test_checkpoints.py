@@ -57,21 +57,21 @@ def test_a_checkpoint_that_cannot_be_written_names_the_directory_and_the_remedy(
 
 def test_the_default_segment_is_the_whole_episode_where_its_states_fit(monkeypatch):
     """Backward recomputes every segment but the last: within SEGMENT_MEMORY_BYTES the whole episode
-    is one segment, beyond it as many substeps as fit, never fewer than the memory-optimal sqrt(T / 2)."""
+    is one segment (rounded up to a power of two, so that designs whose steps differ a little share a
+    layout), beyond it as many substeps as fit, never fewer than the memory-optimal sqrt(T / 2)."""
     from codesign_mpm.engine import simulator
 
-    monkeypatch.setattr(simulator, "SEGMENT_MEMORY_BYTES", 101_000)  # 101 slots of 1,000 bytes: 100 substeps
-    assert simulator.default_segment(80, slot_bytes=1000) == 80
-    assert simulator.default_segment(100, slot_bytes=1000) == 100
-    assert simulator.default_segment(500, slot_bytes=1000) == 100
-    assert simulator.default_segment(500, slot_bytes=100_000) == 16  # none fit: ceil(sqrt(250))
-    assert simulator.default_segment(1, slot_bytes=100_000) == 1
+    monkeypatch.setattr(simulator, "SEGMENT_MEMORY_BYTES", 1_001_000)  # 1,001 slots of 1,000 bytes
+    assert [simulator.default_segment(n, slot_bytes=1000) for n in (6, 8, 80, 128, 129)] == [8, 8, 128, 128, 256]
+    assert simulator.default_segment(600, slot_bytes=1000) == 1000  # 1,024 do not fit
+    assert simulator.default_segment(5000, slot_bytes=100_000) == 50  # 9 fit: sqrt(2500)
+    assert simulator.default_segment(1, slot_bytes=1000) == 1
 
 
 def test_the_segments_memory_may_be_set_from_the_environment(monkeypatch):
     from codesign_mpm.engine import simulator
 
-    monkeypatch.setenv("CODESIGN_SEGMENT_MEMORY_MB", "1")  # 1 MiB: 1,047 slots of 1,000 bytes
+    monkeypatch.setenv("CODESIGN_SEGMENT_MEMORY_MB", "1")  # 1 MiB: 1,048 slots of 1,000 bytes
     assert simulator.default_segment(5000, slot_bytes=1000) == 1047
     monkeypatch.setenv("CODESIGN_SEGMENT_MEMORY_MB", "0")
     assert simulator.default_segment(5000, slot_bytes=1000) == 50  # the memory-optimal sqrt(2500)

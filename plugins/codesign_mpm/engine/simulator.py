@@ -69,10 +69,13 @@ def segment_memory_bytes() -> int:
 
 def default_segment(substeps: int, slot_bytes: int) -> int:
     """Substeps between checkpoints for an episode of `substeps` (at the resting step): the whole
-    episode where its states fit in `segment_memory_bytes()`, else as many as fit, and never fewer
-    than sqrt(substeps / 2), the interval that minimises memory (checkpoints plus slots)."""
+    episode where its states fit in `segment_memory_bytes()`, rounded up to a power of two (the
+    slots are part of the compiled layout: designs and runs whose steps differ a little share one),
+    else as many as fit, and never fewer than sqrt(substeps / 2), the interval that minimises memory
+    (checkpoints plus slots)."""
     fitting = segment_memory_bytes() // max(slot_bytes, 1) - 1
-    return max(1, math.ceil(math.sqrt(substeps / 2)), min(substeps, fitting))
+    whole = 1 << max(substeps - 1, 0).bit_length()
+    return max(1, math.ceil(math.sqrt(substeps / 2)), min(whole, fitting))
 
 
 class SimulationError(RuntimeError):
