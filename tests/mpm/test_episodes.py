@@ -221,3 +221,26 @@ def test_every_designs_differentiable_simulator_takes_the_first_ones_compiled_st
         assert second.k is storage
     finally:
         env.close()
+
+
+def test_an_environment_builds_its_simulators_again_after_another_precision_took_taichi():
+    """Two environments of different precisions used in turn: a simulator of the other precision
+    re-initialises Taichi, which frees the first environment's fields; it builds its simulators
+    again and gives the same episode."""
+    first = make_env()  # float64
+    second = LocomotionEnv(PRESET_CONFIGS["ground"](dx=1 / 32, horizon=HORIZON, dtype="float32",
+                                                    terrain=TerrainConfig(height=0.1, friction=0.5),
+                                                    robot=RobotConfig(size=[0.16, 0.08, 0.08])), PRESETS["ground"])
+    try:
+        rep, controller = parts(first, SineController(SineConfig(init_std=1.0)))
+        before = first.differentiable_episode(rep(), controller).episode_return
+        first.reset(rep())
+        second.reset()  # a float32 simulator: a new Taichi program
+        assert not first.sim.alive
+        assert first.differentiable_episode(rep(), controller).episode_return == before
+        first.reset(rep())
+        assert first.sim.alive
+        assert np.isfinite(first.step(np.zeros(first.action_dim)).reward)
+    finally:
+        first.close()
+        second.close()

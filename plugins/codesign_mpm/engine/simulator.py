@@ -396,6 +396,12 @@ class Simulator:
             raise ValueError(f"action {worst:.4g} exceeds scene.max_action = {self.scene.max_action} (the time "
                              "step is sized for it); scale the actions or raise max_action")
 
+    @property
+    def alive(self) -> bool:
+        """False once closed, or once Taichi was re-initialised (another arch or dtype: a simulator
+        of another precision was built) after this one, which took its fields with it."""
+        return self.k is not None and self._generation == runtime.generation
+
     def _check_alive(self) -> None:
         if self.k is None:
             raise RuntimeError("this simulator was closed")

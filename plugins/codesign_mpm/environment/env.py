@@ -309,8 +309,9 @@ class LocomotionEnv(Environment):
             self.particles = self.design_particles(design)
         particles = self.particles
         # A new particle count needs a new simulator (cheap: compiled kernels of the same
-        # layout are reused from the closed one); reset() re-derives the CFL step itself.
-        if self.sim is None or self.sim.n != particles.n:
+        # layout are reused from the closed one), and so does a Taichi program of another
+        # environment's precision built since; reset() re-derives the CFL step itself.
+        if self.sim is None or not self.sim.alive or self.sim.n != particles.n:
             if self.sim is not None:
                 self.sim.close()
             self.sim = Simulator(self.scene, particles, capacity=self.capacity)
@@ -328,7 +329,7 @@ class LocomotionEnv(Environment):
         """Start one episode per design (None: the current design), all in one batched simulator.
         The tasks are deterministic, so ``seed`` (one per design, or one for all) changes nothing."""
         members = [self.particles if design is None else self.design_particles(design) for design in designs]
-        if self._batch is None or self._batch.counts != [m.n for m in members]:
+        if self._batch is None or not self._batch.alive or self._batch.counts != [m.n for m in members]:
             if self._batch is not None:
                 self._batch.close()
             self._batch = BatchSimulator(self.scene, members, capacity=self.capacity)
@@ -456,7 +457,7 @@ class LocomotionEnv(Environment):
         """A differentiable simulator for `particles` (one per particle count, sharing one layout: the
         capacity and the segment are the first design's, which a stiffer one's time step would change) at
         `start` (default: `initial_state(particles)`)."""
-        if self._grad_sim is None or self._grad_sim.n != particles.n:
+        if self._grad_sim is None or not self._grad_sim.alive or self._grad_sim.n != particles.n:
             if self._grad_sim is not None:
                 self._grad_sim.close()
             self._grad_sim = Simulator(self.scene, particles, requires_grad=True, max_frames=self.horizon,
