@@ -403,10 +403,9 @@ class Simulator:
         return self.k is not None and self._generation == runtime.generation
 
     def _check_alive(self) -> None:
-        if self.k is None:
-            raise RuntimeError("this simulator was closed")
-        if self._generation != runtime.generation:
-            raise RuntimeError("Taichi was re-initialised (another arch or dtype) after this simulator "
+        if not self.alive:
+            raise RuntimeError("this simulator was closed" if self.k is None else
+                               "Taichi was re-initialised (another arch or dtype) after this simulator "
                                "was built; build a new Simulator")
 
     # ------------------------------------------------------------------ stepping
