@@ -67,15 +67,37 @@ class _Constitutive:
         the muscle's included."""
         ti.loop_config(serialize=self.serial)
         for p in range(start, end):
-            F = self._trial(p, s)
-            tau_bar = self.tau.grad[p]
-            F_bar = self.F.grad[so, p]
-            if ti.static(self.has_muscles):
-                F_bar += self._muscle_adjoint(p, F, t, tau_bar)
-            mu, la = self._lame(p)
-            F_bar, self.E.grad[p] = ti.static(material(model).stress_adjoint)(F, mu, la, self.nu[p], tau_bar, F_bar,
-                                                                              self.E.grad[p])
-            self._add_trial_grad(p, s, F_bar, ti.Matrix.zero(float, 3, 3))
+            self._elastic_adjoint_particle(model, p, s, so, t, self._trial(p, s), self.tau.grad[p])
+
+    @ti.func
+    def _elastic_adjoint_particle(self, model: ti.template(), p, s, so, t, F, tau_bar):
+        """Particle p's stress adjoint, muscle included, at its trial F, from its stress's gradient tau_bar."""
+        F_bar = self.F.grad[so, p]
+        if ti.static(self.has_muscles):
+            F_bar += self._muscle_adjoint(p, F, t, tau_bar)
+        mu, la = self._lame(p)
+        F_bar, self.E.grad[p] = ti.static(material(model).stress_adjoint)(F, mu, la, self.nu[p], tau_bar, F_bar,
+                                                                          self.E.grad[p])
+        self._add_trial_grad(p, s, F_bar, ti.Matrix.zero(float, 3, 3))
+
+    @ti.func
+    def _stress_again(self, p, s, t):
+        """(trial F, stress with the muscle at action row t) of particle p at substep s, computed again
+        for a `stress_in_adjoint` layout's reverse pass (elastic models: nothing is written)."""
+        F, tau = self._update(p, s, s + 1)
+        if ti.static(self.has_muscles):
+            tau += self._muscle_stress(p, F, t)
+        return F, tau
+
+    @ti.func
+    def _stress_adjoint_of(self, p, s, t, F, tau_bar):
+        """The stress's adjoint of particle p (`_stress_again`'s reverse), its model chosen as `_update` does."""
+        if ti.static(len(self.models) == 1):
+            self._elastic_adjoint_particle(self.models[0], p, s, s + 1, t, F, tau_bar)
+        else:
+            for model in ti.static(self.models):
+                if self.material[p] == model:
+                    self._elastic_adjoint_particle(model, p, s, s + 1, t, F, tau_bar)
 
     @ti.func
     def _plastic(self, model: ti.template(), p, s, so, F, mu, la):

@@ -1,5 +1,5 @@
 """The grid: clearing the touched box, summing p2g's private copies, keeping a substep's grid for
-the reverse pass, and the grid update
+the reverse pass and replaying it there, and the grid update
 
     v = p / m + dt g; terrain (height-map SDF, Coulomb friction); domain walls
 
@@ -45,14 +45,14 @@ class _Grid:
                 self.grid_contact[I] = 0.0
 
     @ti.kernel
-    def _sum_copies(self, adjoint: ti.template()):
-        """Sum the private grids, and leave them zero for their next use: into the grid's momentum and
-        mass (and momentum before forces) after p2g, or into grid_v_out's (and grid_v_old's) gradient
-        after g2p's adjoint."""
-        self._sum_copies_loop(adjoint)
+    def _sum_copies(self):
+        self._sum_copies_loop(False)
 
     @ti.func
     def _sum_copies_loop(self, adjoint: ti.template()):
+        """Sum the private grids, and leave them zero for their next use: into the grid's momentum and
+        mass (and momentum before forces) after p2g, or into grid_v_out's (and grid_v_old's) gradient
+        after g2p's adjoint."""
         ti.loop_config(serialize=self.serial)
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
@@ -103,16 +103,15 @@ class _Grid:
                     store[k, index, self.part_width - 1] = self.grid_contact[I]
 
     @ti.kernel
-    def _load_box(self, k: ti.i32, box: ti.types.ndarray()):
+    def _replay_grid(self, k: ti.i32, store: ti.types.ndarray(), box: ti.types.ndarray()):
+        """The reverse pass's grid of a kept substep, in one launch: its box and the grid momentum and
+        mass `_store_grid` kept as record k, the grid update on them (as `_grid_op`), and the grid's
+        gradients cleared; each node is its loop iteration's alone."""
         for d in ti.static(range(3)):
             self.lo[d][None] = box[k, d]
             self.hi[d][None] = box[k, 3 + d]
-
-    @ti.kernel
-    def _load_grid(self, k: ti.i32, store: ti.types.ndarray()):
-        """The grid momentum and mass `_store_grid` kept as record k (after `_load_box`)."""
-        lo = ti.Vector([self.lo[0][None], self.lo[1][None], self.lo[2][None]])
-        extent = ti.Vector([self.hi[0][None], self.hi[1][None], self.hi[2][None]]) - lo
+        lo = ti.Vector([box[k, 0], box[k, 1], box[k, 2]])
+        extent = ti.Vector([box[k, 3], box[k, 4], box[k, 5]]) - lo
         ti.loop_config(serialize=self.serial)
         for b, i, j, l in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
@@ -124,21 +123,26 @@ class _Grid:
                 self.grid_q[I] = ti.Vector([store[k, index, 4], store[k, index, 5], store[k, index, 6]])
             if ti.static(self.surface_contact):
                 self.grid_contact[I] = store[k, index, self.part_width - 1]
+            self._grid_op_at(b, i, j, l)
+            self._clear_grid_grad_at(I)
 
     @ti.kernel
     def _clear_grid_grad(self):
         ti.loop_config(serialize=self.serial)
         for b, i, j, k in ti.ndrange(self.members, (self.lo[0][None], self.hi[0][None]),
                                      (self.lo[1][None], self.hi[1][None]), (self.lo[2][None], self.hi[2][None])):
-            I = self._node(b, i, j, k)
-            self.grid_v_in.grad[I] = ti.Vector.zero(float, 3)
-            self.grid_m.grad[I] = 0.0
-            self.grid_v_out.grad[I] = ti.Vector.zero(float, 3)
-            if ti.static(self.has_flip):
-                self.grid_q.grad[I] = ti.Vector.zero(float, 3)
-                self.grid_v_old.grad[I] = ti.Vector.zero(float, 3)
-            if ti.static(self.surface_contact):
-                self.grid_contact.grad[I] = 0.0
+            self._clear_grid_grad_at(self._node(b, i, j, k))
+
+    @ti.func
+    def _clear_grid_grad_at(self, I):
+        self.grid_v_in.grad[I] = ti.Vector.zero(float, 3)
+        self.grid_m.grad[I] = 0.0
+        self.grid_v_out.grad[I] = ti.Vector.zero(float, 3)
+        if ti.static(self.has_flip):
+            self.grid_q.grad[I] = ti.Vector.zero(float, 3)
+            self.grid_v_old.grad[I] = ti.Vector.zero(float, 3)
+        if ti.static(self.surface_contact):
+            self.grid_contact.grad[I] = 0.0
 
     @ti.kernel
     def _grid_op(self):

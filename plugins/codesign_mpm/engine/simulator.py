@@ -434,7 +434,7 @@ class Simulator:
             self._stress_update(s, so, t, j)
         self.k._p2g(s, so, t, self.n, j)
         if self.k.private_scatter:
-            self.k._sum_copies(False)
+            self.k._sum_copies()
         self.k._grid_op()
         if self.k.surface_contact:
             self._surface_contact(s, so)
@@ -459,20 +459,16 @@ class Simulator:
         """Reverse of substep s -> s + 1: its grid (kept from the segment's recompute, or recomputed),
         then the adjoint kernels."""
         if kept:
-            self.k._load_box(s, self._grid_boxes)
-            self.k._load_grid(s, self._grid_store)
-            self._stress_update(s, s + 1, t)
+            self.k._replay_grid(s, self._grid_store, self._grid_boxes)  # with the grid update, gradients cleared
+            if not self.k.stress_in_adjoint:  # else p2g's adjoint computes the stress itself
+                self._stress_update(s, s + 1, t)
             if self.k.surface_contact:
                 self.k._contact_flags(s, self.n)
-            self.k._grid_op()
-            if self.k.surface_contact:
                 self._surface_contact(s, s + 1)
         else:
             self._grid_update(s, s + 1, t)
-        self.k._clear_grid_grad()
+            self.k._clear_grid_grad()
         self.k._g2p_adjoint(s, self.n)
-        if self.k.private_scatter:
-            self.k._sum_copies(True)
         if self.k.surface_contact:  # the impulses were computed from the grid velocity before their scatter
             self.k._clear_impulse_grad(self.n)
             self.k._contact_scatter.grad(s, self.n, 1.0)
@@ -482,14 +478,15 @@ class Simulator:
             else:
                 self.k._contact_impulse.grad(s, self.n)
         self.k._grid_op.grad()
-        self.k._p2g_adjoint(s, self.n)
+        self.k._p2g_adjoint(s, t, self.n)  # with stress_in_adjoint, the stress's adjoint too
         for model, start, end in self._runs:
             if material(model).kind == "hencky":  # the eigenframe algebra by hand, the model's map by Taichi
                 self.k._plastic_adjoint_front(model, s, s + 1, t, start, end)
                 self.k._spectral_map.grad(model, s, s + 1, start, end)
                 self.k._plastic_adjoint_back(model, s, start, end)
             elif material(model).stress_adjoint is not None:  # written by hand (neo-Hookean)
-                self.k._elastic_adjoint(model, s, s + 1, t, start, end)
+                if not self.k.stress_in_adjoint:  # else p2g's adjoint ran it
+                    self.k._elastic_adjoint(model, s, s + 1, t, start, end)
             else:
                 self.k._constitutive_update.grad(model, s, s + 1, t, start, end, 0)
                 continue
@@ -784,12 +781,11 @@ class Simulator:
             boxes = self._grid_boxes.to_numpy()[:L]
             kept = boxes[:, 6] == 1
             self._largest_box = max(self._largest_box, int(np.prod(boxes[:, 3:6] - boxes[:, :3], axis=1).max()))
-            self.k._clear_state_grad(L + 1, n)
-            self.k._add_grad(L, n, *carry[:4])
+            self.k._set_grad(L, n, *carry[:4])
             if self.k.has_jp:
-                self.k._add_jp_grad(L, n, carry[4])
+                self.k._set_jp_grad(L, n, carry[4])
             if self.k.contact_memory:
-                self.k._add_u_grad(L, n, carry[5])
+                self.k._set_u_grad(L, n, carry[5])
             for s in reversed(range(L)):
                 g = g0 + s
                 t = frame_of[g]

@@ -97,6 +97,10 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         # compiles far faster than all of them fused into the scatter) and every differentiable
         # layout (p2g's adjoint is then the scatter's alone, differentiated plane by plane)
         self.separate_stress = self.has_params or layout.requires_grad
+        # a differentiable layout whose models all have a stress adjoint written by hand (neo-Hookean
+        # robots) computes the stress again inside p2g's adjoint and runs the stress's adjoint there
+        # too: one pass over the particles in the reverse substep where there were three
+        self.stress_in_adjoint = layout.requires_grad and all(material(m).hand_adjoint for m in layout.models)
         self.has_jp = any(material(m).plastic_volume for m in layout.models)  # snow's J_p is part of the state
         self.jacobi_tol = JACOBI_TOL_ULPS * float(np.finfo(np.float64 if impl.current_cfg().default_fp == ti.f64
                                                            else np.float32).eps)
@@ -163,7 +167,7 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         self.grid_v_in = vec(3, self.grid_total, True)
         self.grid_m = scalar(self.grid_total, True)
         self.grid_v_out = vec(3, self.grid_total, True)
-        if self.private_scatter:  # p2g's chunk c of the particles scatters into copy c; _sum_copies adds them
+        if self.private_scatter:  # p2g's chunk c of the particles scatters into copy c; _sum_copies_loop adds them
             self.grid_part = vec(self.part_width, (self.copies,) + self.grid_total)
         self.height = scalar((gs[0], gs[2]))
         self.normal = vec(3, (gs[0], gs[2]))
@@ -299,32 +303,18 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
                     F[p, i, j] = self.F.grad[s, p][i, j]
 
     @ti.kernel
-    def _clear_state_grad(self, slots: ti.i32, n: ti.i32):
-        """Zero the particle states' gradients in the segment's first `slots` slots: only those a
-        segment uses, where a fill would clear every slot (a one-frame rollout in a simulator sized
-        for a whole episode uses a few of them)."""
-        ti.loop_config(serialize=self.serial)
-        for s, p in ti.ndrange(slots, n):
-            self.x.grad[s, p] = ti.Vector.zero(float, 3)
-            self.v.grad[s, p] = ti.Vector.zero(float, 3)
-            self.C.grad[s, p] = ti.Matrix.zero(float, 3, 3)
-            self.F.grad[s, p] = ti.Matrix.zero(float, 3, 3)
-            if ti.static(self.has_jp):
-                self.Jp.grad[s, p] = 0.0
-            if ti.static(self.contact_memory):
-                self.u.grad[s, p] = ti.Vector.zero(float, 3)
-
-    @ti.kernel
-    def _add_grad(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+    def _set_grad(self, s: ti.i32, n: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
                   C: ti.types.ndarray(), F: ti.types.ndarray()):
+        """The gradients of slot s's state (a segment's last: its first substep's reverse assigns
+        those of each earlier slot)."""
         ti.loop_config(serialize=self.serial)
         for p in range(n):
             for i in ti.static(range(3)):
-                self.x.grad[s, p][i] += x[p, i]
-                self.v.grad[s, p][i] += v[p, i]
+                self.x.grad[s, p][i] = x[p, i]
+                self.v.grad[s, p][i] = v[p, i]
                 for j in ti.static(range(3)):
-                    self.C.grad[s, p][i, j] += C[p, i, j]
-                    self.F.grad[s, p][i, j] += F[p, i, j]
+                    self.C.grad[s, p][i, j] = C[p, i, j]
+                    self.F.grad[s, p][i, j] = F[p, i, j]
 
     @ti.kernel
     def _load_jp(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
@@ -345,10 +335,10 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
             jp[p] = self.Jp.grad[s, p]
 
     @ti.kernel
-    def _add_jp_grad(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
+    def _set_jp_grad(self, s: ti.i32, n: ti.i32, jp: ti.types.ndarray()):
         ti.loop_config(serialize=self.serial)
         for p in range(n):
-            self.Jp.grad[s, p] += jp[p]
+            self.Jp.grad[s, p] = jp[p]
 
     @ti.kernel
     def _load_u(self, s: ti.i32, n: ti.i32, u: ti.types.ndarray()):
@@ -372,11 +362,11 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
                 u[p, i] = self.u.grad[s, p][i]
 
     @ti.kernel
-    def _add_u_grad(self, s: ti.i32, n: ti.i32, u: ti.types.ndarray()):
+    def _set_u_grad(self, s: ti.i32, n: ti.i32, u: ti.types.ndarray()):
         ti.loop_config(serialize=self.serial)
         for p in range(n):
             for i in ti.static(range(3)):
-                self.u.grad[s, p][i] += u[p, i]
+                self.u.grad[s, p][i] = u[p, i]
 
     @ti.kernel
     def _copy_slot(self, src: ti.i32, dst: ti.i32, n: ti.i32):

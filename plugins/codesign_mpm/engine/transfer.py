@@ -18,7 +18,7 @@ A bare `Scene` defaults to flip 0; the locomotion environment to 0.99.
 
 Scatters without atomics: on a CPU a float atomic add is a compare-and-swap loop, and p2g's
 108 of them per particle bound the whole substep. There, each thread scatters its chunk of
-particles into a private grid with plain adds (`grid_part`) and `grid._sum_copies` adds the copies
+particles into a private grid with plain adds (`grid_part`) and `grid._sum_copies_loop` adds the copies
 (and leaves them zero for the next substep); g2p's adjoint scatters the same way. On a GPU,
 whose atomic adds are native, both scatter into the grid directly.
 
@@ -139,7 +139,7 @@ class _Transfers:
 
     @ti.func
     def _part(self, momentum, mass, before, in_contact):
-        """A private grid node's entry (grid._sum_copies reads it): momentum and mass, with FLIP the
+        """A private grid node's entry (grid._sum_copies_loop reads it): momentum and mass, with FLIP the
         momentum before forces, with the surface contact the mass in contact."""
         m = momentum
         if ti.static(self.has_flip and self.surface_contact):
@@ -203,9 +203,10 @@ class _Transfers:
                     self.grid_contact[I] += weight * in_contact
 
     @ti.func
-    def _p2g_adjoint_particle(self, p, s):
+    def _p2g_adjoint_particle(self, p, s, tau):
         """p2g's adjoint, written by hand (differentiable layouts, whose stress tau is an input): from
-        the grid's momentum and mass gradients at p's nodes to v, C, tau, the volume and x at slot s.
+        the grid's momentum and mass gradients at p's nodes to v, C, the volume and x at slot s, and
+        the gradient of p's stress tau, returned.
 
         Node n = (i, j, k) gets w_n q_n and w_n m, with q_n = m v + A (n - fx) dx = c + dx A n,
         c = m v - dx A fx and A = -4 dt vol / dx^2 tau + m C. With g_n, h_n the momentum and mass
@@ -218,7 +219,7 @@ class _Transfers:
         inv_dx = 1.0 / dx
         node, fx, w = self._stencil(p, s)
         dw = [fx - 1.5, 2.0 * (1.0 - fx), fx - 0.5]  # d w / d fx, per axis
-        tau, vol, v = self.tau[p], self.vol[p], self.v[s, p]
+        vol, v = self.vol[p], self.v[s, p]
         mass = self.rho[p] * vol
         stress_scale = -dt * 4.0 * inv_dx * inv_dx
         affine = stress_scale * vol * tau + mass * self.C[s, p]
@@ -271,9 +272,9 @@ class _Transfers:
         # plain read-modify-writes: p is this iteration's alone (a += would be an atomic add)
         self.v.grad[s, p] = self.v.grad[s, p] + v_bar
         self.C.grad[s, p] = self.C.grad[s, p] + C_bar
-        self.tau.grad[p] = stress_scale * vol * affine_bar  # its only writer: _constitutive_update's adjoint reads it
         self.vol.grad[p] = self.vol.grad[p] + self.rho[p] * mass_bar + stress_scale * (tau * affine_bar).sum()
         self.x.grad[s, p] = self.x.grad[s, p] + inv_dx * fx_bar
+        return stress_scale * vol * affine_bar
 
     @ti.func
     def _p2g_one(self, p, s, so, t, j, copy):
@@ -305,13 +306,19 @@ class _Transfers:
                 self._p2g_one(p, s, so, t, j, -1)
 
     @ti.kernel
-    def _p2g_adjoint(self, s: ti.i32, n: ti.i32):
-        """Reverse of p2g for substep s (differentiable layouts): a gather per particle, no atomics.
-        Written by hand, it compiles as a forward kernel (Taichi's reverse mode of the 27-node
-        scatter took minutes to compile)."""
+    def _p2g_adjoint(self, s: ti.i32, t: ti.i32, n: ti.i32):
+        """Reverse of p2g for substep s (differentiable layouts; action row t): a gather per particle,
+        no atomics. Written by hand, it compiles as a forward kernel (Taichi's reverse mode of the
+        27-node scatter took minutes to compile). A `stress_in_adjoint` layout computes the stress
+        here again and runs its adjoint too; the others leave the stress's gradient in tau.grad for
+        the stress kernels' adjoints."""
         ti.loop_config(serialize=self.serial)
         for p in range(n):
-            self._p2g_adjoint_particle(p, s)
+            if ti.static(self.stress_in_adjoint):
+                F, tau = self._stress_again(p, s, t)
+                self._stress_adjoint_of(p, s, t, F, self._p2g_adjoint_particle(p, s, tau))
+            else:
+                self.tau.grad[p] = self._p2g_adjoint_particle(p, s, self.tau[p])
 
     @ti.func
     def _flip_share(self, p, s):
@@ -399,20 +406,28 @@ class _Transfers:
                 fx_bar -= d_weight * kept.dot(self.grid_v_old[node + ti.Vector(o)])
             S0 += weight * g
         fx_bar -= B.transpose() @ S0
-        self.x.grad[s, p] = self.x.grad[s, p] + x_bar + inv_dx * fx_bar  # p is this thread's alone
-        if ti.static(self.has_flip):
-            self.v.grad[s, p] = self.v.grad[s, p] + kept
+        # the reverse substep's first writes to slot s's gradients, so assignments (p is this thread's
+        # alone): the kernels after this one add to them, and no pass need clear the segment's slots
+        self.x.grad[s, p] = x_bar + inv_dx * fx_bar
+        self.v.grad[s, p] = kept
+        self.C.grad[s, p] = ti.Matrix.zero(float, 3, 3)
+        self.F.grad[s, p] = ti.Matrix.zero(float, 3, 3)
+        if ti.static(self.has_jp):
+            self.Jp.grad[s, p] = 0.0
+        if ti.static(self.contact_memory):
+            self.u.grad[s, p] = ti.Vector.zero(float, 3)
 
     @ti.kernel
     def _g2p_adjoint(self, s: ti.i32, n: ti.i32):
         """Reverse of g2p for substep s -> s + 1 (differentiable layouts): a scatter into the grid's
         velocity gradient, private per thread as p2g's (Taichi's own adjoint of the gather uses
-        atomic adds and cost 5x the forward gather)."""
+        atomic adds and cost 5x the forward gather), the private grids summed in the same launch."""
         if ti.static(self.private_scatter):
             ti.loop_config(serialize=self.serial)
             for c in range(self.copies):
                 for p in range(c * n // self.copies, (c + 1) * n // self.copies):
                     self._g2p_adjoint_particle(p, s, c)
+            self._sum_copies_loop(True)
         else:
             ti.loop_config(serialize=self.serial)
             for p in range(n):

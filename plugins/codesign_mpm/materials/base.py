@@ -162,6 +162,12 @@ class MaterialModel:
         return self.viscosity_index is not None
 
     @property
+    def hand_adjoint(self) -> bool:
+        """An elastic model whose whole stress has its adjoint written by hand (`stress_adjoint`;
+        no parameter vector, no viscous term): the engine needs no reverse mode of Taichi's for it."""
+        return self.stress_adjoint is not None and self.kind == "elastic" and not self.parameters and not self.viscous
+
+    @property
     def plastic(self) -> bool:
         """True if the model changes F beyond (I + dt C) F (return mapping or fluid reset)."""
         return self.kind != "elastic"
