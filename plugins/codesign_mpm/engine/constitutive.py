@@ -10,7 +10,8 @@ Scenes with non-elastic materials and differentiable layouts first run one small
 material run (`_constitutive_update`: return mapping, stress, muscle), and p2g only scatters;
 elastic-only forward scenes compute the stress inside p2g (`_update`). Adjoints: the neo-Hookean
 stress (the robots' default, muscle included) has a hand-written one (`_elastic_adjoint` with
-`materials.neo_hookean.stress_adjoint`),
+`materials.neo_hookean.stress_adjoint`; in a scene of such models alone, run inside p2g's adjoint
+with the stress computed again, `_stress_again` and `_stress_adjoint_of`),
 and so have the plastic models' eigenframe algebra (`_plastic_adjoint_front/back`, with
 Taichi's reverse mode of `_spectral_map` between them). Taichi differentiates the rest: the
 other elastic models' and water's stresses (`_constitutive_update.grad`).
