@@ -264,6 +264,10 @@ def codesign_cli(app: typer.Typer) -> None:
         measure: list[str] = typer.Option([], "--measure", help="forward, float64, dense, backward, batch, "
                                           "scatter, adaptive, flip, contact; repeatable; default: all."),
         frames: int = typer.Option(200, "--frames", min=1, help="Frames of the differentiable episode."),
+        segment_memory: list[int] = typer.Option([], "--segment-memory", min=0, help="MB a differentiable "
+                                                 "episode may keep its states in (CODESIGN_SEGMENT_MEMORY_MB; "
+                                                 "0: the memory-optimal segment); repeatable: the backward "
+                                                 "measurement at each, memory against time [default: 256]."),
         members: Optional[int] = typer.Option(None, "--members", min=2, help="Episodes in the batch "
                                               "measurement [default: 8]; with --profile, a batched simulator "
                                               "of that many is profiled too."),
@@ -290,4 +294,5 @@ def codesign_cli(app: typer.Typer) -> None:
             run_profile_bench(scale, arch, _echo_json, progress=not no_progress, members=members or 0)
         else:
             run_engine_bench(scale, frames, _echo_json, progress=not no_progress, arch=arch,
-                             measures=tuple(measure or ENGINE_MEASURES), members=members or 8)
+                             measures=tuple(measure or ENGINE_MEASURES), members=members or 8,
+                             segment_memory_mb=tuple(segment_memory))

@@ -82,6 +82,7 @@ def measure_backward(case: Case, frames: int = 200, repeats: int = 1) -> dict:
     """(forward + backward) / forward for one differentiable episode, and its peak memory."""
     from codesign_mpm import build_particles
     from codesign_mpm.engine import Simulator
+    from codesign_mpm.engine.simulator import segment_memory_bytes
 
     scene = robot_scene(case)
     particles = build_particles(scene)
@@ -104,7 +105,8 @@ def measure_backward(case: Case, frames: int = 200, repeats: int = 1) -> dict:
     assert np.isfinite(out.com_x).all()
     substeps = sum(sim.frame_substeps)
     return dict(measure="backward", particles=sim.n, frames=frames, substeps=substeps,
-                checkpoint_every=sim.segment, recomputed_substeps=sim.recomputed_substeps,
+                segment_memory_mb=segment_memory_bytes() // 2**20, checkpoint_every=sim.segment,
+                recomputed_substeps=sim.recomputed_substeps,
                 storage_mb=round(sim.k.nbytes / 2**20, 1), first_call_s=round(first, 3),
                 forward_s=float(np.median(fwd)), forward_backward_s=float(np.median(total)),
                 backward_over_forward=float(np.median(total) / np.median(fwd)), repeats=repeats,
@@ -409,21 +411,26 @@ def run_profile_bench(scales: list[str], arch: str, emit, progress: bool = True,
 
 
 def run_engine_bench(scales: list[str], frames: int, emit, progress: bool = True, arch: str = "cpu",
-                     measures: tuple[str, ...] = ENGINE_MEASURES, members: int = 8) -> None:
-    """Emit one JSON object per measurement (see docs/performance.md for what each means)."""
+                     measures: tuple[str, ...] = ENGINE_MEASURES, members: int = 8,
+                     segment_memory_mb: tuple[int, ...] = ()) -> None:
+    """Emit one JSON object per measurement (see docs/performance.md for what each means); the
+    backward one at each of `segment_memory_mb` (the differentiable episode's budget for its states,
+    CODESIGN_SEGMENT_MEMORY_MB; none given: the engine's default): memory against time."""
     from codesign.progress import progress_bar
 
     machine = _machine()
     options = {"backward": dict(frames=frames, repeats=3), "batch": dict(members=members)}
-    with progress_bar(total=len(measures) * len(scales), desc="bench engine", unit="measure", show=progress) as bar:
-        for scale in scales:
-            for measure in measures:
-                dtype = "float64" if measure == "float64" else "float32"
-                case = Case(scale, dtype, "full" if measure == "dense" else "bbox", arch)
-                kind = "forward" if measure in ("float64", "dense") else measure
-                emit(dict(scale=scale, dtype=dtype, grid_region=case.grid_region, arch=arch,
-                          **_run_isolated(kind, case, **options.get(measure, {})), **machine))
-                bar.update(1)
+    budgets = {"backward": [{"CODESIGN_SEGMENT_MEMORY_MB": str(mb)} for mb in segment_memory_mb] or [None]}
+    runs = [(scale, measure, environment) for scale in scales for measure in measures
+            for environment in budgets.get(measure, [None])]
+    with progress_bar(total=len(runs), desc="bench engine", unit="measure", show=progress) as bar:
+        for scale, measure, environment in runs:
+            dtype = "float64" if measure == "float64" else "float32"
+            case = Case(scale, dtype, "full" if measure == "dense" else "bbox", arch)
+            kind = "forward" if measure in ("float64", "dense") else measure
+            emit(dict(scale=scale, dtype=dtype, grid_region=case.grid_region, arch=arch,
+                      **_run_isolated(kind, case, environment=environment, **options.get(measure, {})), **machine))
+            bar.update(1)
 
 
 # `codesign bench environments`: one scene per environment preset, forward throughput.
