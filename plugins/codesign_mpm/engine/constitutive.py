@@ -10,8 +10,8 @@ Scenes with non-elastic materials and differentiable layouts first run one small
 material run (`_constitutive_update`: return mapping, stress, muscle), and p2g only scatters;
 elastic-only forward scenes compute the stress inside p2g (`_update`). Adjoints: the neo-Hookean
 stress (the robots' default, muscle included) has a hand-written one (`_elastic_adjoint` with
-`materials.neo_hookean.stress_adjoint`; in a scene of such models alone, run inside p2g's adjoint
-with the stress computed again, `_stress_again` and `_stress_adjoint_of`),
+`materials.neo_hookean.stress_adjoint`; in a scene of that model alone, run inside p2g's adjoint
+with the stress computed again by `_stress_again`),
 and so have the plastic models' eigenframe algebra (`_plastic_adjoint_front/back`, with
 Taichi's reverse mode of `_spectral_map` between them). Taichi differentiates the rest: the
 other elastic models' and water's stresses (`_constitutive_update.grad`).
@@ -84,21 +84,11 @@ class _Constitutive:
     @ti.func
     def _stress_again(self, p, s, t):
         """(trial F, stress with the muscle at action row t) of particle p at substep s, computed again
-        for a `stress_in_adjoint` layout's reverse pass (elastic models: nothing is written)."""
+        for a `stress_in_adjoint` layout's reverse pass (its one elastic model: nothing is written)."""
         F, tau = self._update(p, s, s + 1)
         if ti.static(self.has_muscles):
             tau += self._muscle_stress(p, F, t)
         return F, tau
-
-    @ti.func
-    def _stress_adjoint_of(self, p, s, t, F, tau_bar):
-        """The stress's adjoint of particle p (`_stress_again`'s reverse), its model chosen as `_update` does."""
-        if ti.static(len(self.models) == 1):
-            self._elastic_adjoint_particle(self.models[0], p, s, s + 1, t, F, tau_bar)
-        else:
-            for model in ti.static(self.models):
-                if self.material[p] == model:
-                    self._elastic_adjoint_particle(model, p, s, s + 1, t, F, tau_bar)
 
     @ti.func
     def _plastic(self, model: ti.template(), p, s, so, F, mu, la):

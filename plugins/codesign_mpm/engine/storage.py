@@ -97,10 +97,11 @@ class _Storage(_Transfers, _Contact, _Grid, _Eigen, _Constitutive):
         # compiles far faster than all of them fused into the scatter) and every differentiable
         # layout (p2g's adjoint is then the scatter's alone, differentiated plane by plane)
         self.separate_stress = self.has_params or layout.requires_grad
-        # a differentiable layout whose models all have a stress adjoint written by hand (neo-Hookean
+        # a differentiable layout of one model whose stress adjoint is written by hand (neo-Hookean
         # robots) computes the stress again inside p2g's adjoint and runs the stress's adjoint there
         # too: one pass over the particles in the reverse substep where there were three
-        self.stress_in_adjoint = layout.requires_grad and all(material(m).hand_adjoint for m in layout.models)
+        self.stress_in_adjoint = (layout.requires_grad and len(layout.models) == 1
+                                  and material(layout.models[0]).hand_adjoint)
         self.has_jp = any(material(m).plastic_volume for m in layout.models)  # snow's J_p is part of the state
         self.jacobi_tol = JACOBI_TOL_ULPS * float(np.finfo(np.float64 if impl.current_cfg().default_fp == ti.f64
                                                            else np.float32).eps)

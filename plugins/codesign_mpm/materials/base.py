@@ -164,7 +164,8 @@ class MaterialModel:
     @property
     def hand_adjoint(self) -> bool:
         """An elastic model whose whole stress has its adjoint written by hand (`stress_adjoint`;
-        no parameter vector, no viscous term): the engine needs no reverse mode of Taichi's for it."""
+        no parameter vector, no viscous term): the engine needs no reverse mode of Taichi's for it,
+        and a differentiable scene of it alone runs it inside p2g's adjoint."""
         return self.stress_adjoint is not None and self.kind == "elastic" and not self.parameters and not self.viscous
 
     @property
