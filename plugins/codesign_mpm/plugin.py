@@ -289,6 +289,9 @@ def codesign_cli(app: typer.Typer) -> None:
         for m in measure:
             if m not in ENGINE_MEASURES:
                 raise typer.BadParameter(f"--measure {m!r}: choose from {', '.join(ENGINE_MEASURES)}")
+        if segment_memory and (profile or (measure and "backward" not in measure)):
+            raise typer.BadParameter("--segment-memory sizes the backward measurement: add --measure backward "
+                                     "(and no --profile)")
         _check_arch(arch)
         if profile:
             run_profile_bench(scale, arch, _echo_json, progress=not no_progress, members=members or 0)

@@ -49,5 +49,8 @@ def test_bench_engine_names_the_allowed_measures_and_archs(cli):
     code, _, err = cli("bench", "engine", "--measure", "speed")
     assert code != 0 and ("--measure 'speed': choose from forward, float64, dense, backward, batch, scatter, "
                           "adaptive, flip, contact") in " ".join(err.replace("│", " ").split())
+    code, _, err = cli("bench", "engine", "--measure", "forward", "--segment-memory", "64")
+    assert code != 0 and "--segment-memory sizes the backward measurement: add --measure backward" in \
+        " ".join(err.replace("│", " ").split())
     code, _, err = cli("bench", "environments", "--arch", "opengl")
     assert code != 0 and "--arch 'opengl': choose from cpu, cuda" in " ".join(err.replace("│", " ").split())

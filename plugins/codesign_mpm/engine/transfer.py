@@ -316,7 +316,8 @@ class _Transfers:
         for p in range(n):
             if ti.static(self.stress_in_adjoint):
                 F, tau = self._stress_again(p, s, t)
-                self._elastic_adjoint_particle(self.models[0], p, s, s + 1, t, F, self._p2g_adjoint_particle(p, s, tau))
+                tau_bar = self._p2g_adjoint_particle(p, s, tau)
+                self._elastic_adjoint_particle(self.models[0], p, s, s + 1, t, F, tau_bar)
             else:
                 self.tau.grad[p] = self._p2g_adjoint_particle(p, s, self.tau[p])
 
