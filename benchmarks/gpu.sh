@@ -38,7 +38,7 @@ scales() { for s in $1; do printf -- '--scale %s ' "$s"; done; }
 within_budget 200 $bench engine --arch "$ARCH" $(scales "$SCALES") --measure forward --measure backward --frames 40 \
     --no-progress >> "$OUT/engine.jsonl"
 # the paper's scale again with its whole episode in one segment (4.8 GB: memory a GPU has to spare)
-CODESIGN_SEGMENT_MEMORY_MB=8192 within_budget 60 $bench engine --arch "$ARCH" --scale paper --measure backward \
+within_budget 60 $bench engine --arch "$ARCH" --scale paper --measure backward --segment-memory 8192 \
     --frames 40 --no-progress >> "$OUT/engine.jsonl"
 within_budget 100 $bench engine --arch "$ARCH" --profile $(scales "$PROFILED") --no-progress >> "$OUT/profile.jsonl"
 within_budget 60 $bench engine --arch "$ARCH" --scale tiny --measure batch --members 64 --no-progress >> "$OUT/engine.jsonl"

@@ -209,6 +209,8 @@ def _accuracy_summary(rows: list[dict], front: list[int]) -> list[str]:
 
 
 def _preset_section(rows: list[dict]) -> list[str]:
+    from codesign_mpm.engine.simulator import SEGMENT_MEMORY_BYTES
+
     lines = ["## Quality presets", "",
              "`quality: draft | default | paper | reference` in an environment's recipe config (or a scene file) "
              "sets these settings (`codesign_mpm.scene.quality.QUALITY`, the table below is generated from it and a test "
@@ -222,7 +224,8 @@ def _preset_section(rows: list[dict]) -> list[str]:
         setting = q.settings()
         cells = [f"`{name}`", f"1/{round(1 / q.dx)}", q.particles_per_cell, q.cover_particles_per_cell,
                  f"{q.cfl:g}", q.dtype,
-                 "auto (the episode, within 256 MB)" if q.checkpoint_every is None else q.checkpoint_every]
+                 f"auto (the episode, within {SEGMENT_MEMORY_BYTES // 2**20} MB)" if q.checkpoint_every is None
+                 else q.checkpoint_every]
         for problem in ("robot_ground", "robot_desert"):
             match = [r for r in rows if r.get("problem") == problem and "error" in r and _same_setting(r, setting)]
             if match:
